@@ -1,0 +1,113 @@
+"""The robot YAML (config/robots/<name>.yaml): the single source of truth for a robot's keypoints, estimated
+joints, root keypoint, neutral pose and URDF source. Loaded into plain dataclasses; nothing here imports torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from holo_pose_ros.resources import config_dir
+
+
+@dataclass(frozen=True)
+class UrdfSource:
+    """Where the URDF comes from: exactly one of (package + path), file, or string."""
+
+    package: str | None = None
+    path: str | None = None
+    file: str | None = None
+    string: str | None = None
+
+
+@dataclass(frozen=True)
+class KeypointSpec:
+    """A keypoint: the origin of URDF link `link`, named as in DREAM files."""
+
+    name: str
+    link: str
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """An estimated joint: `name` in DREAM files and outputs, `urdf` the URDF joint it drives."""
+
+    name: str
+    urdf: str
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """Everything the package knows about one robot, as written in its YAML."""
+
+    name: str
+    urdf: UrdfSource
+    base_link: str
+    keypoints: tuple[KeypointSpec, ...]
+    root_keypoint: str
+    joints: tuple[JointSpec, ...]
+    neutral: tuple[float, ...]
+    fixed_joints: dict[str, float] = field(default_factory=dict)
+    constants: dict[str, float] = field(default_factory=dict)
+    source_file: str | None = None
+
+    @property
+    def keypoint_names(self) -> list[str]:
+        return [k.name for k in self.keypoints]
+
+    @property
+    def joint_names(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    @property
+    def root_index(self) -> int:
+        return self.keypoint_names.index(self.root_keypoint)
+
+
+def available_robots() -> list[str]:
+    """Names of the robots shipped in config/robots."""
+    return sorted(p.stem for p in (config_dir() / "robots").glob("*.yaml"))
+
+
+def _require(data: dict, key: str, where: str):
+    if key not in data:
+        raise ValueError(f"{where}: missing required key '{key}'")
+    return data[key]
+
+
+def load_robot_spec(robot: str | Path) -> RobotSpec:
+    """Load a robot by shipped name ('panda', 'kuka', 'baxter') or by path to a robot YAML file."""
+    path = Path(robot)
+    if not path.suffix:
+        path = config_dir() / "robots" / f"{robot}.yaml"
+        if not path.is_file():
+            raise ValueError(f"unknown robot '{robot}'; shipped robots: {', '.join(available_robots())}")
+    where = str(path)
+    with open(path) as f:
+        data = yaml.safe_load(f)
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected a mapping at the top level")
+    urdf = UrdfSource(**_require(data, "urdf", where))
+    if sum(x is not None for x in (urdf.path, urdf.file, urdf.string)) != 1 or (urdf.path and not urdf.package):
+        raise ValueError(f"{where}: 'urdf' needs exactly one of package+path, file, or string")
+    keypoints = tuple(KeypointSpec(**k) for k in _require(data, "keypoints", where))
+    joints = tuple(JointSpec(**j) for j in _require(data, "joints", where))
+    neutral = tuple(float(x) for x in _require(data, "neutral", where))
+    if len(neutral) != len(joints):
+        raise ValueError(f"{where}: 'neutral' has {len(neutral)} values for {len(joints)} joints")
+    spec = RobotSpec(
+        name=str(_require(data, "name", where)),
+        urdf=urdf,
+        base_link=str(_require(data, "base_link", where)),
+        keypoints=keypoints,
+        root_keypoint=str(_require(data, "root_keypoint", where)),
+        joints=joints,
+        neutral=neutral,
+        fixed_joints={str(k): float(v) for k, v in (data.get("fixed_joints") or {}).items()},
+        constants={str(k): float(v) for k, v in (data.get("constants") or {}).items()},
+        source_file=where,
+    )
+    if spec.root_keypoint not in spec.keypoint_names:
+        raise ValueError(f"{where}: root_keypoint '{spec.root_keypoint}' is not one of the keypoints")
+    return spec

@@ -1,0 +1,65 @@
+"""ament_python package that also installs with pip (see README)."""
+
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "holo_pose_ros"
+
+
+def share(subdir):
+    """data_files entries that install config/<subdir> under share/<pkg>/config/<subdir>."""
+    files = [f for f in glob(os.path.join("config", subdir, "*")) if os.path.isfile(f)]
+    return (os.path.join("share", package_name, "config", subdir) if subdir else os.path.join("share", package_name, "config"), files)
+
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={package_name: ["weights/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        share(""),
+        share("robots"),
+        share("generate"),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "setuptools",
+        "numpy",
+        "pyyaml",
+        "torch>=2.2",
+        "pytorch-kinematics>=0.10",
+        "yourdfpy>=0.0.56",
+        "pycollada",
+        "trimesh",
+        "fast-simplification",
+        "moderngl>=5.8",
+        "opencv-python-headless",
+        "matplotlib",
+        "tqdm",
+        "safetensors",
+        # robot descriptions (URDF + meshes), installed offline from PyPI
+        "example-robot-data",
+        "pybullet",
+    ],
+    extras_require={
+        # ROS 2 Jazzy from PyPI wheels, for a pip install without a ROS distribution
+        "ros": ["ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp"],
+        "test": ["pytest"],
+    },
+    tests_require=["pytest"],
+    zip_safe=False,
+    maintainer="holo_pose_ros developers",
+    maintainer_email="holo-pose@example.com",
+    description="Holistic robot pose estimation (joint states + camera-to-robot pose) from one RGB camera.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "holo-pose = holo_pose_ros.cli:main",
+        ],
+    },
+)
