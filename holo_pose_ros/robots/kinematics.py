@@ -128,6 +128,20 @@ class RobotModel:
     def link_names(self) -> list[str]:
         return list(self.urdf.link_map)
 
+    @property
+    def keypoint_parents(self) -> list[int]:
+        """For each keypoint, the index of the nearest keypoint up the kinematic tree (-1 for none): the
+        skeleton's edges, for drawing."""
+        parent_of = {j.child: j.parent for j in self.urdf.robot.joints}
+        index = {link: i for i, link in enumerate(self._keypoint_links)}
+        parents = []
+        for link in self._keypoint_links:
+            up = parent_of.get(link)
+            while up is not None and up not in index:
+                up = parent_of.get(up)
+            parents.append(index[up] if up is not None else -1)
+        return parents
+
     # -- kinematics ------------------------------------------------------------------------------------------
     def _as_batch(self, q) -> torch.Tensor:
         q = torch.as_tensor(q, dtype=self.dtype, device=self.device)
