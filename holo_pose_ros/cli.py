@@ -28,6 +28,43 @@ def _cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from holo_pose_ros.train.trainer import Trainer, load_train_config
+
+    cfg = load_train_config(args.config)
+    if args.out:
+        cfg["out"] = args.out
+    kept = Trainer(cfg, device=args.device, progress=not args.quiet).run(resume=args.resume)
+    print(f"kept model: {kept}" if kept else "no model kept (no validation ran)")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from holo_pose_ros.data.dream import DreamReader
+    from holo_pose_ros.estimator import Estimator
+    from holo_pose_ros.evaluation.plots import plot_add_curve, plot_frames_grid
+    from holo_pose_ros.evaluation.report import format_report, per_frame_add, write_report
+    from holo_pose_ros.evaluation.run import evaluate_folder
+
+    estimator = Estimator.from_model(args.model, device=args.device, tracking=args.tracking)
+    reader = DreamReader(args.data, estimator.robot, units=args.units)
+    report, results, images = evaluate_folder(estimator, reader, known_joints=args.known_joints, limit=args.limit,
+                                              progress=not args.quiet, keep_images=12 if args.plots else 0)
+    print(format_report(report))
+    if args.out:
+        write_report(report, args.out)
+        print(f"report: {args.out}")
+    if args.plots:
+        plots = Path(args.plots)
+        add_m, found = per_frame_add(results)
+        plot_add_curve(add_m, found, plots / "add_curve.png", label=str(args.model))
+        kept = results[:len(images)]
+        plot_frames_grid(images, [r.pred_uv for r in kept], [r.gt_uv for r in kept], estimator.robot.keypoint_parents,
+                         plots / "frames.png", titles=[r.name for r in kept])
+        print(f"plots: {plots}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="holo-pose", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -52,6 +89,27 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--n", type=int, default=12, help="frames in the grid")
     s.add_argument("--units", default="auto", choices=["auto", "m", "cm"], help="3D units of the files")
     s.set_defaults(func=_cmd_show)
+
+    t = sub.add_parser("train", help="train a model on rendered views (config/train/*.yaml)")
+    t.add_argument("--config", required=True, help="training YAML")
+    t.add_argument("--out", default=None, help="run folder (overrides the YAML's `out`)")
+    t.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    t.add_argument("--device", default=None, help="cpu, cuda, cuda:N (default: cuda when available)")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=_cmd_train)
+
+    e = sub.add_parser("evaluate", help="score a model on a DREAM folder exactly as deployed (no ground truth)")
+    e.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    e.add_argument("--data", required=True, help="DREAM folder")
+    e.add_argument("--known-joints", action="store_true", help="use the true joints (camera-to-robot calibration)")
+    e.add_argument("--tracking", action="store_true", help="crop from the previous frame (for video sequences)")
+    e.add_argument("--out", default=None, help="report.json path")
+    e.add_argument("--plots", default=None, help="folder for the ADD curve and a grid of frames")
+    e.add_argument("--limit", type=int, default=None, help="only the first N frames")
+    e.add_argument("--units", default="auto", choices=["auto", "m", "cm"], help="3D units of the files")
+    e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    e.add_argument("--quiet", action="store_true", help="no progress bar")
+    e.set_defaults(func=_cmd_evaluate)
     return parser
 
 

@@ -89,7 +89,9 @@ def _random_distractors(cfg: dict, appearance: dict, rng: np.random.Generator, T
     for _ in range(int(rng.integers(cfg["count"][0], cfg["count"][1] + 1))):
         size = np.array([_uniform(rng, cfg["size"]) * radius for _ in range(3)]) * 0.5
         if rng.random() < cfg["occluder_probability"]:
-            p = kp_cam[rng.integers(len(kp_cam))] * rng.uniform(0.35, 0.85)
+            fraction = rng.uniform(0.35, 0.85)  # of the way to a keypoint; shrink with it to keep the angular size
+            p = kp_cam[rng.integers(len(kp_cam))] * fraction
+            size *= fraction
         else:
             z = rng.uniform(0.4, 1.6) * robot_depth
             uv1 = np.array([rng.uniform(0, width), rng.uniform(0, height), 1.0])

@@ -1,0 +1,119 @@
+"""Training samples rendered on the fly, directly at the network's input size: a full camera frame is drawn
+(joints, camera, look; data/scene.py), then one view of it is rendered through the crop's intrinsics, exactly
+as the deployed estimator would see it:
+  - `crop`: the box the localizer would give (in-image keypoints, grown by the crop margin) with random shift,
+    scale and aspect jitter, so imperfect boxes do not hurt;
+  - `full`: the whole letterboxed frame (the localizer's pass);
+  - `negative`: a `crop` or `full` view with no robot (presence target 0).
+Areas of a view outside the original frame are black, as in `crop_image`. Sample i depends only on (seed, i)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from holo_pose_ros.geometry.camera import in_image, project
+from holo_pose_ros.geometry.crop import box_from_points, crop_affine, full_image_box
+
+MODES = ("crop", "full", "negative")
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    """How views are drawn (fractions, pixels)."""
+
+    input_size: int
+    frame_width: int = 640
+    frame_height: int = 480
+    mode_probabilities: tuple[float, float, float] = (0.75, 0.15, 0.10)
+    crop_margin: float = 0.3        # the estimator's crop recipe: keypoint extent grown by this on each side
+    shift_sigma: float = 0.08       # box centre jitter, in box sides
+    scale_range: tuple[float, float] = (0.85, 1.3)
+
+
+def crop_box_from_keypoints(uv: np.ndarray, width: int, height: int, margin: float) -> np.ndarray:
+    """The estimator's crop box: in-image keypoints (pixels, clipped to the frame) grown by `margin`."""
+    inside = in_image(uv, width, height)
+    pts = uv[inside] if inside.sum() >= 2 else np.clip(uv, [0, 0], [width, height])
+    return box_from_points(pts, margin)
+
+
+def jitter_box(box: np.ndarray, rng: np.random.Generator, cfg: SampleConfig) -> np.ndarray:
+    """A randomly shifted and scaled copy of a square box (x0, y0, side)."""
+    side = box[2] * rng.uniform(*cfg.scale_range)
+    centre = box[:2] + box[2] / 2 + rng.normal(0, cfg.shift_sigma * box[2], 2)
+    return np.array([centre[0] - side / 2, centre[1] - side / 2, side])
+
+
+def outside_frame_mask(box: np.ndarray, size: int, width: int, height: int) -> np.ndarray:
+    """(S, S) bool: crop pixels whose centre falls outside the original W x H frame."""
+    A_inv = np.linalg.inv(crop_affine(box, size))
+    c = np.arange(size, dtype=np.float64)
+    u = A_inv[0, 0] * c + A_inv[0, 2]
+    v = A_inv[1, 1] * c + A_inv[1, 2]
+    return (v[:, None] < -0.5) | (v[:, None] > height - 0.5) | (u[None, :] < -0.5) | (u[None, :] > width - 0.5)
+
+
+class RenderedViews(torch.utils.data.Dataset):
+    """`length` random training views of one robot (an index is a seed: any length, no files)."""
+
+    def __init__(self, robot: str, sample_cfg: SampleConfig, generator_cfg: dict, seed: int, length: int, max_faces: int = 12000):
+        self.robot_name, self.cfg, self.gen_cfg, self.seed, self.length = robot, sample_cfg, generator_cfg, seed, length
+        self.max_faces = max_faces
+        self._state = None  # built lazily in the process that renders (DataLoader workers)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _lazy(self):
+        if self._state is None:
+            from holo_pose_ros.data.meshes import load_link_meshes
+            from holo_pose_ros.data.render import Renderer
+            from holo_pose_ros.robots.kinematics import RobotModel
+
+            model = RobotModel(self.robot_name, dtype=torch.float64)
+            meshes = load_link_meshes(model, self.max_faces)
+            self._state = (model, meshes, Renderer(self.cfg.input_size, self.cfg.input_size))
+        return self._state
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        from holo_pose_ros.data.backgrounds import random_background
+        from holo_pose_ros.data.generator import _post_process
+        from holo_pose_ros.data.scene import sample_intrinsics, sample_scene
+
+        model, meshes, renderer = self._lazy()
+        cfg, gen, S = self.cfg, self.gen_cfg, self.cfg.input_size
+        W, H = cfg.frame_width, cfg.frame_height
+        rng = np.random.default_rng([self.seed, index])
+        K = sample_intrinsics(gen["intrinsics"], rng, W, H)
+        scene = sample_scene(model, gen, rng, K, W, H, {k: m.color for k, m in meshes.items()})
+        q = torch.from_numpy(scene.joints[None])
+        links = model.link_transforms(q)
+        kp_base = torch.stack([links[k.link][0, :3, 3] for k in model.spec.keypoints]).numpy()
+        kp_cam = kp_base @ scene.T_cam_base[:3, :3].T + scene.T_cam_base[:3, 3]
+        mode = MODES[rng.choice(3, p=cfg.mode_probabilities)]
+        view = ("crop", "full")[rng.integers(2)] if mode == "negative" else mode
+        if view == "full":
+            box = full_image_box(W, H)
+        else:
+            box = jitter_box(crop_box_from_keypoints(project(kp_cam, K), W, H, cfg.crop_margin), rng, cfg)
+        K_crop = crop_affine(box, S) @ K
+        robot = {} if mode == "negative" else meshes
+        poses = {name: scene.T_cam_base @ links[name][0].numpy() for name in robot}
+        result = renderer.render(poses, robot, K_crop, scene.materials, scene.light, scene.distractors)
+        background = random_background(rng, S, S, tuple(gen["background"]["layers"]))
+        alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
+        image = _post_process(result.rgba[..., :3] * alpha + background * (1.0 - alpha), gen["post"], rng)
+        image[outside_frame_mask(box, S, W, H)] = 0
+        T_cam_root = scene.T_cam_base @ links[model.spec.keypoints[model.root_index].link][0].numpy()
+        uv = project(kp_cam, K_crop)
+        visible = (uv >= -0.5).all(1) & (uv <= S - 0.5).all(1) & in_image(project(kp_cam, K), W, H)
+        f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+        return {
+            "image": torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0,
+            "K_crop": f32(K_crop), "joints": f32(scene.joints), "keypoints_3d": f32(kp_cam), "uv": f32(uv),
+            "visible": torch.from_numpy(visible), "R_root": f32(T_cam_root[:3, :3]), "t_root": f32(T_cam_root[:3, 3]),
+            "presence": torch.tensor(float(mode != "negative")), "mode": torch.tensor(MODES.index(mode)),
+        }

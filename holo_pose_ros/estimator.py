@@ -1,0 +1,141 @@
+"""The inference API every caller uses (CLI, ROS nodes, evaluation, tests): load a model once, then
+`estimate(image, K) -> Estimate`. No ground truth of any kind reaches it: the robot is found in the raw image by
+a first pass over the whole letterboxed frame (or, when tracking, from the previous frame's keypoints), and its
+box feeds a second, accurate pass. Camera frame OpenCV; metres, radians, pixels."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from holo_pose_ros.data.training import crop_box_from_keypoints
+from holo_pose_ros.geometry.camera import project
+from holo_pose_ros.geometry.crop import crop_affine, crop_image, full_image_box
+from holo_pose_ros.model.network import HolisticNet, add_kinematics
+from holo_pose_ros.robots.kinematics import RobotModel
+
+CROP_MARGIN = 0.3  # the crop recipe shared with training (data/training.py)
+
+
+@dataclass
+class Estimate:
+    """One frame's result. When `found` is False only `confidence`, `timings_ms` and the names are meaningful."""
+
+    found: bool
+    confidence: float                    # probability that the robot is in the crop, [0, 1]
+    joint_names: list[str]
+    keypoint_names: list[str]
+    joints: np.ndarray | None = None     # (J,) radians / metres (prismatic)
+    T_cam_base: np.ndarray | None = None  # (4, 4) robot base in the camera frame
+    keypoints_3d: np.ndarray | None = None  # (N, 3) metres, camera frame (FK of the estimate)
+    keypoints_2d: np.ndarray | None = None  # (N, 2) pixels of the input image
+    keypoint_confidence: np.ndarray | None = None  # (N,) heatmap sharpness, [0, 1]
+    root_depth_m: float | None = None
+    box: np.ndarray | None = None        # (x0, y0, side) of the crop, image pixels (edge coordinates)
+    tracked: bool = False                # the crop came from the previous frame
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Estimator:
+    """Holistic robot pose from raw RGB images. `tracking` reuses the previous frame's keypoints for the crop (one
+    network pass a frame) and re-localizes when the confidence drops below `min_confidence`."""
+
+    def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
+                 min_confidence: float = 0.5, tracking: bool = False):
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+        self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
+        self.size = net.cfg.input_size
+        self.min_confidence, self.tracking = min_confidence, tracking
+        self._previous: Estimate | None = None
+
+    @classmethod
+    def from_model(cls, model: str | Path, device: str = "cpu", **kwargs) -> "Estimator":
+        """Load a shipped model by name ('panda') or a model card / weights path."""
+        from holo_pose_ros.model.weights import load_model
+
+        net, robot, _ = load_model(model, device)
+        return cls(net, robot, device, **kwargs)
+
+    def reset(self) -> None:
+        """Forget the tracked state (e.g. when the stream jumps)."""
+        self._previous = None
+
+    @torch.inference_mode()
+    def _forward(self, image: np.ndarray, K: np.ndarray, box: np.ndarray,
+                 known_joints: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """One network pass on the crop `box` of `image`: its outputs (batch of 1, numpy) and the crop's K."""
+        K_crop = crop_affine(box, self.size) @ K
+        crop = torch.from_numpy(crop_image(image, box, self.size)).to(self.device)
+        x = crop.permute(2, 0, 1)[None].float() / 255.0
+        out = self.net(x, torch.from_numpy(K_crop[None]).float().to(self.device))
+        if known_joints is not None:
+            out["joints"] = torch.as_tensor(known_joints, dtype=out["joints"].dtype, device=self.device).reshape(1, -1)
+        out = add_kinematics(self.robot, out)
+        return {k: v[0].detach().cpu().double().numpy() for k, v in out.items()}, K_crop
+
+    def localize(self, image: np.ndarray, K: np.ndarray) -> tuple[float, np.ndarray]:
+        """The first pass over the whole letterboxed image: (presence probability, 2D keypoints in image px)."""
+        box = full_image_box(image.shape[1], image.shape[0])
+        out, _ = self._forward(image, K, box)
+        uv = _apply(np.linalg.inv(crop_affine(box, self.size)), out["uv"])
+        return float(1 / (1 + np.exp(-out["presence_logit"]))), uv
+
+    def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
+        """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
+        the joint states are known and trusted, replaces the estimated ones (camera-to-robot calibration mode)."""
+        _check_inputs(image, K)
+        K = np.asarray(K, dtype=np.float64)
+        H, W = image.shape[:2]
+        timings, start = {}, time.perf_counter()
+        names = dict(joint_names=self.robot.joint_names, keypoint_names=self.robot.keypoint_names)
+        tracked = self.tracking and self._previous is not None and self._previous.found
+        if tracked:
+            uv = self._previous.keypoints_2d
+        else:
+            presence, uv = self.localize(image, K)
+            timings["localize"] = (time.perf_counter() - start) * 1e3
+            if presence < self.min_confidence:
+                self._previous = None
+                return Estimate(False, presence, timings_ms={**timings, "total": timings["localize"]}, **names)
+        box = crop_box_from_keypoints(uv, W, H, CROP_MARGIN)
+        t0 = time.perf_counter()
+        out, _ = self._forward(image, K, box, known_joints)
+        timings["estimate"] = (time.perf_counter() - t0) * 1e3
+        confidence = float(1 / (1 + np.exp(-out["presence_logit"])))
+        if confidence < self.min_confidence:
+            self._previous = None
+            if tracked:  # lost the robot: look for it in the whole image again
+                return self.estimate(image, K, known_joints)
+            timings["total"] = (time.perf_counter() - start) * 1e3
+            return Estimate(False, confidence, timings_ms=timings, box=box, **names)
+        keypoints_3d = out["keypoints_fk"]
+        result = Estimate(
+            True, confidence, joints=out["joints"], T_cam_base=out["T_cam_base"], keypoints_3d=keypoints_3d,
+            keypoints_2d=project(keypoints_3d, K), keypoint_confidence=out["keypoint_confidence"],
+            root_depth_m=float(out["depth"]), box=box, tracked=tracked, timings_ms=timings, **names)
+        result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
+        self._previous = result
+        return result
+
+
+def _apply(A: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 affine map to (N, 2) points."""
+    return uv @ A[:2, :2].T + A[:2, 2]
+
+
+def _check_inputs(image: np.ndarray, K: np.ndarray) -> None:
+    """Reject what cannot be estimated, with a message that says why."""
+    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"image must be an (H, W, 3) uint8 RGB array, got {getattr(image, 'shape', type(image))} "
+                         f"{getattr(image, 'dtype', '')}")
+    if image.shape[0] < 8 or image.shape[1] < 8:
+        raise ValueError(f"image too small: {image.shape[1]} x {image.shape[0]} px")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("K must be a finite 3x3 intrinsics matrix with positive focal lengths")
+

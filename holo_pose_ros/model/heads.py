@@ -1,0 +1,102 @@
+"""The network heads of the paper (§3): DepthNet's scale, KeypointNet's 3D heatmaps with soft-argmax, and the
+iterative residual regressors of JointNet and RotationNet. Batched tensors; crop pixels, metres, radians."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+class DepthHead(nn.Module):
+    """Root depth d = lambda * d_c. lambda = lambda_0 * exp(s): lambda_0 is the training set's median d / d_c
+    (a buffer saved with the weights) and s comes from a zero-initialized linear layer, clamped to +-log(8), so
+    training starts at the right scale and lambda stays positive and bounded (the official code leaves lambda
+    unbounded and starts it at 0)."""
+
+    def __init__(self, channels: int, lambda0: float = 1.0, max_log_scale: float = math.log(8.0)):
+        super().__init__()
+        self.fc = nn.Linear(channels, 1)
+        nn.init.zeros_(self.fc.weight)
+        nn.init.zeros_(self.fc.bias)
+        self.register_buffer("log_lambda0", torch.tensor(math.log(lambda0)))
+        self.max_log_scale = max_log_scale
+
+    def forward(self, pooled: torch.Tensor, d_c: torch.Tensor) -> torch.Tensor:
+        """(B, C) pooled features, (B,) d_c in metres -> (B,) root depth in metres."""
+        s = self.fc(pooled).squeeze(-1).clamp(-self.max_log_scale, self.max_log_scale)
+        return torch.exp(self.log_lambda0 + s) * d_c
+
+
+def reference_depth(K_crop: torch.Tensor, crop_size: int, reference_side_m: float) -> torch.Tensor:
+    """d_c = sqrt(fx fy A_real / A_box) in metres, with the box the whole S x S crop (the localizer's box):
+    A_real = side^2 (m^2), A_box = S^2 (crop pixels^2), fx, fy of the crop's K (B, 3, 3)."""
+    return torch.sqrt(K_crop[:, 0, 0] * K_crop[:, 1, 1]) * reference_side_m / crop_size
+
+
+class KeypointHead(nn.Module):
+    """KeypointNet: deconvolutions to an N x D x H x W volume per image, softmax over each keypoint's volume,
+    and soft-argmax -> (u, v) in crop pixels and root-relative depth dz in metres."""
+
+    def __init__(self, channels: int, n_keypoints: int, crop_size: int, size: int = 64, depth_bins: int = 64,
+                 deconv_channels: int = 256, depth_range_m: float = 1.3):
+        super().__init__()
+        layers, cin, res = [], channels, crop_size // 32
+        while res < size:
+            layers += [nn.ConvTranspose2d(cin, deconv_channels, 4, 2, 1, bias=False), nn.BatchNorm2d(deconv_channels), nn.ReLU(inplace=True)]
+            cin, res = deconv_channels, res * 2
+        if res != size:
+            raise ValueError(f"heatmap size {size} must be crop_size/32 * 2^k (crop {crop_size})")
+        self.deconv = nn.Sequential(*layers)
+        self.out = nn.Conv2d(cin, n_keypoints * depth_bins, 1)
+        self.n, self.d, self.size, self.crop_size, self.depth_range = n_keypoints, depth_bins, size, crop_size, depth_range_m
+
+    def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(B, C, S/32, S/32) -> uv (B, N, 2) crop px, dz (B, N) m, confidence (B, N) in [0, 1]."""
+        logits = self.out(self.deconv(features))
+        B = logits.shape[0]
+        prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, self.size, self.size)
+        return soft_argmax_3d(prob, self.crop_size, self.depth_range)
+
+
+def soft_argmax_3d(prob: torch.Tensor, crop_size: int, depth_range_m: float) -> dict[str, torch.Tensor]:
+    """Expectations of a normalized (B, N, D, H, W) volume: u, v in crop pixels (cell centres map to pixel centres
+    of the S x S crop), dz in metres over [-range/2, range/2], and a confidence: the 2D mass within one cell of
+    the expected position (a peaked heatmap gives 1, a flat one ~9/(H W))."""
+    B, N, D, H, W = prob.shape
+    p_xy = prob.sum(2)                                   # (B, N, H, W)
+    px, py, pz = p_xy.sum(2), p_xy.sum(3), prob.sum((3, 4))
+    ix = torch.arange(W, dtype=prob.dtype, device=prob.device)
+    iy = torch.arange(H, dtype=prob.dtype, device=prob.device)
+    iz = torch.arange(D, dtype=prob.dtype, device=prob.device)
+    x, y, z = (px * ix).sum(-1), (py * iy).sum(-1), (pz * iz).sum(-1)
+    u = (x + 0.5) * crop_size / W - 0.5
+    v = (y + 0.5) * crop_size / H - 0.5
+    dz = ((z + 0.5) / D - 0.5) * depth_range_m
+    near = ((ix.view(1, 1, 1, W) - x[..., None, None]).abs() <= 1.0) & ((iy.view(1, 1, H, 1) - y[..., None, None]).abs() <= 1.0)
+    confidence = (p_xy * near).sum((-1, -2))
+    return {"uv": torch.stack([u, v], -1), "dz": dz, "confidence": confidence}
+
+
+class IterativeRegressor(nn.Module):
+    """HMR-style iterative residual regression: state <- state + MLP([features, state]), `iterations` times,
+    from a fixed initial state (the neutral pose / identity rotation). Unlike the official code, the MLP has
+    non-linearities."""
+
+    def __init__(self, channels: int, initial: torch.Tensor, iterations: int = 4, hidden: int = 1024, dropout: float = 0.2):
+        super().__init__()
+        dim = initial.numel()
+        self.register_buffer("initial", initial.float().reshape(1, dim))
+        self.mlp = nn.Sequential(
+            nn.Linear(channels + dim, hidden), nn.ReLU(inplace=True), nn.Dropout(dropout),
+            nn.Linear(hidden, hidden), nn.ReLU(inplace=True), nn.Dropout(dropout), nn.Linear(hidden, dim))
+        nn.init.xavier_uniform_(self.mlp[-1].weight, gain=0.01)
+        nn.init.zeros_(self.mlp[-1].bias)
+        self.iterations = iterations
+
+    def forward(self, pooled: torch.Tensor) -> torch.Tensor:
+        state = self.initial.expand(pooled.shape[0], -1)
+        for _ in range(self.iterations):
+            state = state + self.mlp(torch.cat([pooled, state], dim=1))
+        return state

@@ -1,0 +1,119 @@
+"""The holistic network (paper §3): DepthNet -> root depth, a shared backbone -> KeypointNet (P'), JointNet (q)
+and RotationNet (R), then differentiable forward kinematics -> keypoints P and the base pose. Built from a model
+YAML (config/model/<name>.yaml) and a robot; camera frame OpenCV, metres, radians."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+import yaml
+from torch import nn
+
+from holo_pose_ros.geometry.rotation import matrix_to_rot6d, rot6d_to_matrix
+from holo_pose_ros.model.backbones import build_backbone
+from holo_pose_ros.model.heads import DepthHead, IterativeRegressor, KeypointHead, reference_depth
+from holo_pose_ros.resources import config_dir
+from holo_pose_ros.robots.kinematics import RobotModel
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """A network configuration; see config/model/*.yaml for what each field means."""
+
+    name: str
+    input_size: int
+    backbone: str
+    depth_backbone: str
+    pretrained: bool
+    depth_pretrained: bool
+    heatmap_size: int
+    depth_bins: int
+    deconv_channels: int
+    regressor_hidden: int
+    iterations: int
+    dropout: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def load_model_config(config: str | Path | dict) -> ModelConfig:
+    """A model configuration by name (config/model/<name>.yaml), path, or dict."""
+    if isinstance(config, dict):
+        return ModelConfig(**config)
+    path = Path(config)
+    if not path.suffix:
+        path = config_dir() / "model" / f"{config}.yaml"
+    if not path.is_file():
+        raise ValueError(f"unknown model config '{config}'")
+    with open(path) as f:
+        return ModelConfig(**yaml.safe_load(f))
+
+
+class HolisticNet(nn.Module):
+    """Image crop (B, 3, S, S) in [0, 1] RGB + the crop's K (B, 3, 3) -> every head's output (no FK: the network
+    alone exports to ONNX; `add_kinematics` completes the estimate)."""
+
+    def __init__(self, cfg: ModelConfig, robot: RobotModel):
+        super().__init__()
+        spec = robot.spec
+        self.cfg = cfg
+        self.root_index = robot.root_index
+        self.reference_side_m = spec.constants.get("reference_box_side_m", 1.0)
+        self.backbone = build_backbone(cfg.backbone, cfg.pretrained)
+        info = self.backbone.info
+        self.register_buffer("mean", torch.tensor(info.mean).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor(info.std).view(1, 3, 1, 1))
+        self.depth_backbone = None if cfg.depth_backbone == "shared" else build_backbone(cfg.depth_backbone, cfg.depth_pretrained)
+        depth_info = info if self.depth_backbone is None else self.depth_backbone.info
+        self.register_buffer("depth_mean", torch.tensor(depth_info.mean).view(1, 3, 1, 1))
+        self.register_buffer("depth_std", torch.tensor(depth_info.std).view(1, 3, 1, 1))
+        self.depth_head = DepthHead(depth_info.channels)
+        self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
+                                          cfg.depth_bins, cfg.deconv_channels, spec.constants.get("keypoint_depth_range_m", 1.3))
+        lower, upper = robot.lower.float().cpu(), robot.upper.float().cpu()
+        self.register_buffer("joint_mid", (lower + upper) / 2)
+        self.register_buffer("joint_half", (upper - lower) / 2)
+        neutral = (robot.neutral.float().cpu() - self.joint_mid) / self.joint_half
+        self.joint_net = IterativeRegressor(info.channels, neutral, cfg.iterations, cfg.regressor_hidden, cfg.dropout)
+        self.rotation_net = IterativeRegressor(info.channels, matrix_to_rot6d(torch.eye(3)), cfg.iterations,
+                                               cfg.regressor_hidden, cfg.dropout)
+        self.presence = nn.Linear(info.channels, 1)
+
+    def forward(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
+        features = self.backbone((image - self.mean) / self.std)
+        pooled = features.mean((2, 3))
+        if self.depth_backbone is None:
+            depth_pooled = pooled
+        else:
+            depth_pooled = self.depth_backbone((image - self.depth_mean) / self.depth_std).mean((2, 3))
+        depth = self.depth_head(depth_pooled, reference_depth(K_crop, self.cfg.input_size, self.reference_side_m))
+        kp = self.keypoint_head(features)
+        root = torch.zeros_like(kp["dz"])
+        root[:, self.root_index] = 1.0
+        dz = kp["dz"] * (1.0 - root)                      # the root keypoint sits at depth d exactly
+        rays = torch.cat([kp["uv"], torch.ones_like(kp["uv"][..., :1])], -1) @ torch.linalg.inv(K_crop).transpose(1, 2)
+        keypoints_reg = rays * (depth[:, None] + dz)[..., None]
+        joints_norm = self.joint_net(pooled)
+        r6 = self.rotation_net(pooled)
+        return {
+            "depth": depth, "uv": kp["uv"], "dz": dz, "keypoint_confidence": kp["confidence"],
+            "keypoints_reg": keypoints_reg, "t": keypoints_reg[:, self.root_index],
+            "joints_norm": joints_norm, "joints": self.joint_mid + self.joint_half * joints_norm,
+            "rot6d": r6, "R": rot6d_to_matrix(r6), "presence_logit": self.presence(pooled).squeeze(-1),
+        }
+
+
+def add_kinematics(robot: RobotModel, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Complete the network's output with FK: keypoints P = R * P_root(q) + t (B, N, 3, camera frame) and the
+    base pose T_cam<-base = [R | t] * inv(T_base<-root(q)) (B, 4, 4). Differentiable in q, R and t."""
+    q = out["joints"].to(robot.dtype)
+    R, t = out["R"].to(robot.dtype), out["t"].to(robot.dtype)
+    links = robot.link_transforms(q, [k.link for k in robot.spec.keypoints])
+    root_inv = torch.linalg.inv(links[robot.spec.keypoints[robot.root_index].link])
+    in_root = torch.stack([(root_inv @ links[k.link])[:, :3, 3] for k in robot.spec.keypoints], dim=1)
+    T_cam_root = torch.zeros(q.shape[0], 4, 4, dtype=q.dtype, device=q.device)
+    T_cam_root[:, :3, :3], T_cam_root[:, :3, 3], T_cam_root[:, 3, 3] = R, t, 1.0
+    return {**out, "keypoints_fk": in_root @ R.transpose(1, 2) + t[:, None], "T_cam_base": T_cam_root @ root_inv}

@@ -1,0 +1,57 @@
+"""Weights as data: a safetensors file (no pickle) plus a YAML model card beside it naming the robot, the network
+configuration, how it was trained and what it scored. `--model panda` resolves to the shipped card."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import yaml
+from safetensors.torch import load_file, save_file
+
+from holo_pose_ros.model.network import HolisticNet, load_model_config
+from holo_pose_ros.resources import weights_dir
+from holo_pose_ros.robots.kinematics import RobotModel
+
+
+def resolve_model(model: str | Path) -> Path:
+    """A model card path from a shipped name ('panda'), a card (.yaml) or a weights file (.safetensors)."""
+    path = Path(model)
+    if path.suffix == ".safetensors":
+        path = path.with_suffix(".yaml")
+    elif not path.suffix:
+        path = weights_dir() / f"{model}.yaml"
+        if not path.is_file():
+            shipped = sorted(p.stem for p in weights_dir().glob("*.yaml"))
+            raise ValueError(f"no shipped model '{model}'; shipped: {', '.join(shipped) or 'none'}")
+    if not path.is_file():
+        raise FileNotFoundError(f"model card not found: {path}")
+    return path
+
+
+def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None = None) -> Path:
+    """Write `path`.safetensors and its card `path`.yaml (robot, model config, plus `card`)."""
+    path = Path(path).with_suffix("")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items() if v.dtype.is_floating_point}
+    save_file(state, str(path.with_suffix(".safetensors")), metadata={"robot": robot, "config": net.cfg.name})
+    full_card = {"robot": robot, "weights": path.with_suffix(".safetensors").name, "model": net.cfg.to_dict(), **(card or {})}
+    with open(path.with_suffix(".yaml"), "w") as f:
+        yaml.safe_dump(full_card, f, sort_keys=False)
+    return path.with_suffix(".yaml")
+
+
+def load_model(model: str | Path, device: str | torch.device = "cpu") -> tuple[HolisticNet, RobotModel, dict]:
+    """(network in eval mode, its robot, its card) from a shipped name or a card/weights path."""
+    card_path = resolve_model(model)
+    with open(card_path) as f:
+        card = yaml.safe_load(f)
+    robot = RobotModel(card["robot"], device=device)
+    cfg = load_model_config({**card["model"], "pretrained": False, "depth_pretrained": False})
+    net = HolisticNet(cfg, robot)
+    state = load_file(str(card_path.parent / card["weights"]))
+    missing, unexpected = net.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+    if missing or unexpected:
+        raise ValueError(f"{card_path}: weights do not match the network (missing {missing[:5]}, unexpected {unexpected[:5]})")
+    return net.to(device).eval(), robot, card

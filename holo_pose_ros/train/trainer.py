@@ -1,0 +1,213 @@
+"""The staged training loop (paper §3.5): DepthNet pretraining, then the whole network end to end on rendered
+views. Resumable checkpoints, a CSV log per validation interval, the kept model chosen on a generated validation
+folder scored through the deployed estimator (never a test set). AMP and channels_last on a GPU; several GPUs
+with torchrun (DDP)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import yaml
+from tqdm import tqdm
+
+from holo_pose_ros.data.generator import generate, load_generator_config
+from holo_pose_ros.data.training import RenderedViews, SampleConfig
+from holo_pose_ros.model.heads import reference_depth
+from holo_pose_ros.model.network import HolisticNet, add_kinematics, load_model_config
+from holo_pose_ros.model.weights import save_model
+from holo_pose_ros.robots.kinematics import RobotModel
+from holo_pose_ros.train.losses import supervised_losses, total_loss
+
+
+def load_train_config(path: str | Path) -> dict:
+    with open(path) as f:
+        cfg = yaml.safe_load(f)
+    for key in ("robot", "model", "generator", "out", "stages", "batch_size"):
+        if key not in cfg:
+            raise ValueError(f"{path}: missing required key '{key}'")
+    return cfg
+
+
+def lr_factor(step: int, steps: int, warmup: int) -> float:
+    """Linear warm-up, then cosine decay to 5 % of the stage's learning rate."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = (step - warmup) / max(1, steps - warmup)
+    return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+
+class Trainer:
+    """Owns the model, data, optimizer and bookkeeping of one training run."""
+
+    def __init__(self, cfg: dict, device: str | None = None, progress: bool = True):
+        self.cfg, self.progress = cfg, progress
+        self.distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
+        if self.distributed:
+            dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        self.rank = dist.get_rank() if self.distributed else 0
+        if device is None:
+            device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu"
+        self.device = torch.device(device)
+        self.cuda = self.device.type == "cuda"
+        torch.manual_seed(cfg.get("seed", 0))
+        self.out = Path(cfg["out"])
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.robot = RobotModel(cfg["robot"], device=self.device)
+        self.model_cfg = load_model_config(cfg["model"])
+        self.net = HolisticNet(self.model_cfg, self.robot).to(self.device)
+        if self.cuda:
+            self.net = self.net.to(memory_format=torch.channels_last)
+        views = cfg.get("views", {})
+        self.sample_cfg = SampleConfig(
+            self.model_cfg.input_size,
+            mode_probabilities=tuple(views.get("mode_probabilities", (0.75, 0.15, 0.10))),
+            shift_sigma=views.get("shift_sigma", 0.08), scale_range=tuple(views.get("scale_range", (0.85, 1.3))))
+        self.generator_cfg = load_generator_config(cfg["generator"])
+        self.step, self.stage_index, self.best_auc = 0, 0, -1.0
+        self.total_steps = sum(s["steps"] for s in cfg["stages"])
+
+    # -- data ----------------------------------------------------------------------------------------------
+    def _loader(self, start: int, count: int) -> torch.utils.data.DataLoader:
+        """Views [start, start + count) of this rank's stream (deterministic, so a resumed run sees new data)."""
+        seed = self.cfg.get("seed", 0) * 1000 + self.rank
+        dataset = torch.utils.data.Subset(RenderedViews(self.cfg["robot"], self.sample_cfg, self.generator_cfg, seed,
+                                                        start + count), range(start, start + count))
+        workers = self.cfg.get("num_workers", 1)
+        return torch.utils.data.DataLoader(dataset, batch_size=self.cfg["batch_size"], num_workers=workers,
+                                           pin_memory=self.cuda, persistent_workers=False,
+                                           multiprocessing_context="spawn" if workers else None, drop_last=True)
+
+    def calibrate_depth_scale(self, n: int = 256) -> float:
+        """Set DepthNet's lambda_0 to the median of d / d_c over `n` rendered crop views."""
+        dataset = RenderedViews(self.cfg["robot"], SampleConfig(self.model_cfg.input_size, mode_probabilities=(1.0, 0.0, 0.0)),
+                                self.generator_cfg, seed=-1 % 2**31, length=n)
+        ratios = []
+        for i in range(n):
+            s = dataset[i]
+            d_c = reference_depth(s["K_crop"][None], self.model_cfg.input_size, self.net.reference_side_m)
+            ratios.append(float(s["t_root"][2] / d_c))
+        lam = float(np.median(ratios))
+        self.net.depth_head.log_lambda0.fill_(math.log(lam))
+        return lam
+
+    def validation_folder(self) -> Path:
+        """The generated validation folder (made once, reused)."""
+        v = self.cfg["validation"]
+        folder = self.out / f"val_seed{v['seed']}"
+        if not (folder / f"{v['frames'] - 1:06d}.json").exists():
+            generate(self.cfg["robot"], v["frames"], folder, seed=v["seed"], config=v.get("config", "randomized"),
+                     progress=False)
+        return folder
+
+    # -- checkpoints ---------------------------------------------------------------------------------------
+    def save_checkpoint(self, optimizer) -> None:
+        torch.save({"net": self.net.state_dict(), "optimizer": optimizer.state_dict(), "step": self.step,
+                    "stage_index": self.stage_index, "best_auc": self.best_auc}, self.out / "last.pt")
+
+    def load_checkpoint(self) -> dict | None:
+        path = self.out / "last.pt"
+        if not path.exists():
+            return None
+        state = torch.load(path, map_location=self.device, weights_only=True)
+        self.net.load_state_dict(state["net"])
+        self.step, self.stage_index, self.best_auc = state["step"], state["stage_index"], state["best_auc"]
+        return state
+
+    # -- the loop ------------------------------------------------------------------------------------------
+    def validate(self) -> dict:
+        """Score the current network through the deployed estimator on the validation folder."""
+        from holo_pose_ros.data.dream import DreamReader
+        from holo_pose_ros.estimator import Estimator
+        from holo_pose_ros.evaluation.run import evaluate_folder
+
+        self.net.eval()
+        estimator = Estimator(self.net, self.robot, self.device)
+        report, _, _ = evaluate_folder(estimator, DreamReader(self.validation_folder(), self.cfg["robot"]), progress=False)
+        self.net.train()
+        return report
+
+    def run(self, resume: bool = False) -> Path | None:
+        """Train every stage; returns the kept model card (rank 0)."""
+        state = self.load_checkpoint() if resume else None
+        if state is None:
+            lam = self.calibrate_depth_scale()
+            if self.rank == 0:
+                print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
+        net = torch.nn.parallel.DistributedDataParallel(self.net) if self.distributed else self.net
+        log_path = self.out / "log.csv"
+        bar = tqdm(total=self.total_steps, initial=self.step, desc="train", unit="step", disable=self.rank != 0 or not self.progress)
+        kept = self.out / "best.yaml" if self.best_auc >= 0 else None
+        done_before = sum(s["steps"] for s in self.cfg["stages"][:self.stage_index])
+        for stage_index in range(self.stage_index, len(self.cfg["stages"])):
+            stage = self.cfg["stages"][stage_index]
+            self.stage_index = stage_index
+            optimizer = torch.optim.AdamW(net.parameters(), lr=stage["lr"], weight_decay=self.cfg.get("weight_decay", 1e-4))
+            if state is not None and state["stage_index"] == stage_index:
+                optimizer.load_state_dict(state["optimizer"])
+            stage_step = self.step - done_before
+            sums, count, tick = {}, 0, time.perf_counter()
+            loader = self._loader(self.step * self.cfg["batch_size"], (stage["steps"] - stage_step) * self.cfg["batch_size"])
+            for batch in loader:
+                batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+                for group in optimizer.param_groups:
+                    group["lr"] = stage["lr"] * lr_factor(stage_step, stage["steps"], stage.get("warmup_steps", 0))
+                image = batch["image"].to(memory_format=torch.channels_last) if self.cuda else batch["image"]
+                with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cuda):
+                    out = net(image, batch["K_crop"])
+                out = {k: v.float() for k, v in out.items()}
+                out = add_kinematics(self.robot, out)
+                terms = supervised_losses(out, batch, self.net.joint_mid, self.net.joint_half, self.model_cfg.input_size)
+                loss = total_loss(terms, stage["losses"])
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(net.parameters(), self.cfg.get("grad_clip", 5.0))
+                optimizer.step()
+                self.step += 1
+                stage_step += 1
+                count += 1
+                for k, v in {**terms, "loss": loss}.items():
+                    sums[k] = sums.get(k, 0.0) + float(v.detach())
+                bar.update()
+                bar.set_postfix(stage=stage["name"], loss=f"{float(loss):.3f}")
+                every = self.cfg["validation"]["every_steps"]
+                if self.rank == 0 and (stage_step % every == 0 or stage_step == stage["steps"]):
+                    kept = self._end_interval(stage, optimizer, sums, count, time.perf_counter() - tick, log_path) or kept
+                    sums, count, tick = {}, 0, time.perf_counter()
+            done_before += stage["steps"]
+            state = None
+        bar.close()
+        if self.distributed:
+            dist.destroy_process_group()
+        return kept
+
+    def _end_interval(self, stage: dict, optimizer, sums: dict, count: int, seconds: float, log_path: Path) -> Path | None:
+        """Validate, log a CSV row, checkpoint, and keep the model if it is the best so far."""
+        report = self.validate() if stage["name"] != "depth" else {}
+        row = {"step": self.step, "stage": stage["name"], "lr": optimizer.param_groups[0]["lr"],
+               "images_per_s": count * self.cfg["batch_size"] / max(seconds, 1e-9),
+               **{f"loss_{k}": v / max(count, 1) for k, v in sums.items()},
+               **{f"val_{k}": report.get(k) for k in ("add_auc", "add_mean_mm", "n_not_found", "depth_error_mm")}}
+        row["val_depth_error_mm"] = (report.get("depth_error_mm") or {}).get("mean")
+        new = not log_path.exists()
+        with open(log_path, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+        self.save_checkpoint(optimizer)
+        auc = report.get("add_auc")
+        if auc is not None and auc > self.best_auc:
+            self.best_auc = auc
+            self.save_checkpoint(optimizer)
+            return save_model(self.net, self.cfg["robot"], self.out / "best", {
+                "training": {"config": self.cfg, "steps": self.step, "samples": self.step * self.cfg["batch_size"]},
+                "validation": {k: report[k] for k in ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm")},
+            })
+        return None

@@ -1,0 +1,128 @@
+"""The holistic network's modules, its training signal, the weights format and the estimator, on real
+components (pretrained EfficientNet-Lite0, real URDF FK, rendered views)."""
+
+import numpy as np
+import pytest
+import torch
+
+from holo_pose_ros.data.generator import load_generator_config
+from holo_pose_ros.data.training import RenderedViews, SampleConfig
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.heads import DepthHead, reference_depth, soft_argmax_3d
+from holo_pose_ros.model.network import HolisticNet, add_kinematics, load_model_config
+from holo_pose_ros.model.weights import load_model, save_model
+from holo_pose_ros.robots.kinematics import RobotModel
+from holo_pose_ros.train.losses import supervised_losses, total_loss
+
+SMALL = {**load_model_config("lite").to_dict(), "name": "test-small", "input_size": 64, "heatmap_size": 16,
+         "depth_bins": 8, "deconv_channels": 32, "regressor_hidden": 64}
+WEIGHTS = {"joints": 1.0, "rotation": 1.0, "translation": 1.0, "depth": 1.0, "kp2d_reg": 10.0, "kp3d_reg": 10.0,
+           "kp2d_fk": 10.0, "kp3d_fk": 10.0, "presence": 0.5}
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return RobotModel("panda")
+
+
+@pytest.fixture(scope="module")
+def views():
+    cfg = SampleConfig(64, mode_probabilities=(0.6, 0.2, 0.2))
+    dataset = RenderedViews("panda", cfg, load_generator_config("randomized"), seed=5, length=8)
+    return [dataset[i] for i in range(8)]
+
+
+def test_soft_argmax_of_a_peaked_volume_gives_the_peak():
+    prob = torch.zeros(1, 2, 8, 16, 16)
+    prob[0, 0, 5, 3, 11] = 1.0
+    prob[0, 1] = 1.0 / prob[0, 1].numel()
+    out = soft_argmax_3d(prob, crop_size=64, depth_range_m=1.6)
+    assert torch.allclose(out["uv"][0, 0], torch.tensor([(11 + 0.5) * 4 - 0.5, (3 + 0.5) * 4 - 0.5]))
+    assert torch.isclose(out["dz"][0, 0], torch.tensor((5.5 / 8 - 0.5) * 1.6))
+    assert torch.isclose(out["confidence"][0, 0], torch.tensor(1.0))
+    assert torch.allclose(out["uv"][0, 1], torch.tensor([31.5, 31.5]))  # a flat volume: the centre
+    assert out["confidence"][0, 1] < 0.05
+
+
+def test_reference_depth_and_depth_head():
+    K = torch.tensor([[[400.0, 0, 96], [0, 900.0, 96], [0, 0, 1]]])
+    d_c = reference_depth(K, 192, 1.0)
+    assert torch.isclose(d_c, torch.tensor([600.0 / 192]))   # sqrt(fx fy A_real / A_box)
+    head = DepthHead(16, lambda0=0.7)
+    assert torch.isclose(head(torch.randn(1, 16), d_c), 0.7 * d_c)  # zero-initialized: lambda starts at lambda_0
+
+
+def test_network_shapes_and_units(robot, views):
+    net = HolisticNet(load_model_config(SMALL), robot).eval()
+    batch = torch.stack([v["image"] for v in views[:2]]), torch.stack([v["K_crop"] for v in views[:2]])
+    with torch.no_grad():
+        out = add_kinematics(robot, net(*batch))
+    N, J = robot.n_keypoints, robot.n_joints
+    shapes = {"depth": (2,), "uv": (2, N, 2), "dz": (2, N), "keypoint_confidence": (2, N), "keypoints_reg": (2, N, 3),
+              "t": (2, 3), "joints": (2, J), "rot6d": (2, 6), "R": (2, 3, 3), "presence_logit": (2,),
+              "keypoints_fk": (2, N, 3), "T_cam_base": (2, 4, 4)}
+    assert {k: tuple(v.shape) for k, v in out.items() if k in shapes} == shapes
+    assert (out["depth"] > 0).all() and torch.allclose(out["t"], out["keypoints_reg"][:, robot.root_index])
+    assert torch.allclose(out["keypoints_reg"][:, :, 2] - out["depth"][:, None], out["dz"], atol=1e-5)  # metres
+    assert torch.allclose(out["joints"][0], robot.neutral, atol=0.05)  # regression starts at the neutral pose
+    assert ((out["uv"] >= -0.5) & (out["uv"] <= 63.5)).all()           # crop pixels
+
+
+def test_fk_of_the_true_state_reproduces_the_true_keypoints(robot, views):
+    crops = [v for v in views if int(v["mode"]) != 2]
+    truth = {"joints": torch.stack([v["joints"] for v in crops]), "R": torch.stack([v["R_root"] for v in crops]),
+             "t": torch.stack([v["t_root"] for v in crops])}
+    out = add_kinematics(robot, truth)
+    assert torch.allclose(out["keypoints_fk"], torch.stack([v["keypoints_3d"] for v in crops]), atol=1e-4)
+    base = out["T_cam_base"][:, :3, 3]
+    assert torch.allclose(base, out["keypoints_fk"][:, 0], atol=1e-4)  # panda_link0 is the base
+
+
+def test_rendered_views_are_consistent(views):
+    from holo_pose_ros.geometry.camera import project
+
+    for v in views:
+        uv = project(v["keypoints_3d"].double().numpy(), v["K_crop"].double().numpy())
+        assert np.allclose(uv, v["uv"].numpy(), atol=1e-3)
+        assert v["image"].shape == (3, 64, 64) and 0 <= float(v["image"].min()) and float(v["image"].max()) <= 1
+        assert float(v["presence"]) == float(int(v["mode"]) != 2)
+
+
+def test_a_short_training_run_lowers_the_loss(robot, views):
+    torch.manual_seed(0)
+    net = HolisticNet(load_model_config(SMALL), robot).train()
+    batch = {k: torch.stack([v[k] for v in views]) for k in views[0]}
+    optimizer = torch.optim.AdamW(net.parameters(), lr=2e-3)
+    losses = []
+    for _ in range(25):
+        out = add_kinematics(robot, net(batch["image"], batch["K_crop"]))
+        loss = total_loss(supervised_losses(out, batch, net.joint_mid, net.joint_half, 64), WEIGHTS)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    assert np.isfinite(losses).all()
+    assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:3]), losses
+
+
+def test_weights_round_trip_and_estimator(tmp_path, robot, views):
+    net = HolisticNet(load_model_config(SMALL), robot).eval()
+    card = save_model(net, "panda", tmp_path / "small", {"note": "test"})
+    loaded, loaded_robot, meta = load_model(card)
+    assert meta["note"] == "test" and loaded_robot.name == "panda"
+    x, K = views[0]["image"][None], views[0]["K_crop"][None]
+    with torch.no_grad():
+        a, b = net(x, K), loaded(x, K)
+    assert all(torch.allclose(a[k], b[k]) for k in a)
+    estimator = Estimator(loaded, loaded_robot, min_confidence=0.0)
+    image = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    K_img = np.array([[150.0, 0, 80], [0, 150.0, 60], [0, 0, 1]])
+    est = estimator.estimate(image, K_img)
+    assert est.found and est.joints.shape == (robot.n_joints,) and est.keypoints_2d.shape == (robot.n_keypoints, 2)
+    assert np.allclose(est.T_cam_base[3], [0, 0, 0, 1]) and {"localize", "estimate", "total"} <= set(est.timings_ms)
+    known = estimator.estimate(image, K_img, known_joints=robot.neutral.numpy() + 0.1)
+    assert np.allclose(known.joints, robot.neutral.numpy() + 0.1)
+    for bad_image, bad_K in [(image[..., 0], K_img), (image.astype(np.float32), K_img), (image, np.zeros((3, 3))),
+                             (image, K_img * np.nan)]:
+        with pytest.raises(ValueError):
+            estimator.estimate(bad_image, bad_K)
