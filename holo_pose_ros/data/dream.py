@@ -21,6 +21,7 @@ from holo_pose_ros.geometry.alignment import (
     quaternion_xyzw_to_matrix,
     rigid_align,
 )
+from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.robots.kinematics import RobotModel
 
 logger = logging.getLogger(__name__)
@@ -110,17 +111,6 @@ def _check_units(units: str, allow_auto: bool) -> str:
     if units not in allowed:
         raise ValueError(f"units must be one of {allowed}, got {units!r}")
     return units
-
-
-def project(K: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 2) pixel projections K·P/z of (N, 3) camera-frame points."""
-    uvw = points @ K.T
-    return uvw[:, :2] / uvw[:, 2:3]
-
-
-def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(N,) bool: DREAM's in-frame rule 0 <= u <= W and 0 <= v <= H (inclusive, as dream/analysis.py)."""
-    return (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
 
 
 # -- folder and camera --------------------------------------------------------------------------------------------
@@ -500,7 +490,7 @@ class DreamWriter:
     def _frame_json(self, joints: np.ndarray, T: np.ndarray, kp3d: np.ndarray, extra: dict | None) -> dict:
         """The NDDS frame dictionary (3D values converted to file units)."""
         quaternion = matrix_to_quaternion_xyzw(T[:3, :3] @ UE_TO_OPENCV.T)  # inverse of R = R(q)·UE_TO_OPENCV
-        uv = project(self.K, kp3d)
+        uv = project(kp3d, self.K)
         keypoints = [{"name": n, "location": (p * self.factor).tolist(), "projected_location": q.tolist()}
                      for n, p, q in zip(self.robot.keypoint_names, kp3d, uv)]
         data = {
