@@ -175,7 +175,7 @@ class Trainer:
                 for k, v in {**terms, "loss": loss}.items():
                     sums[k] = sums.get(k, 0.0) + float(v.detach())
                 bar.update()
-                bar.set_postfix(stage=stage["name"], loss=f"{float(loss):.3f}")
+                bar.set_postfix(stage=stage["name"], loss=f"{float(loss.detach()):.3f}")
                 every = self.cfg["validation"]["every_steps"]
                 if self.rank == 0 and (stage_step % every == 0 or stage_step == stage["steps"]):
                     kept = self._end_interval(stage, optimizer, sums, count, time.perf_counter() - tick, log_path) or kept
