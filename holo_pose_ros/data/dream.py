@@ -454,6 +454,14 @@ class DreamReader:
 
 # -- writer -------------------------------------------------------------------------------------------------------
 
+def _write_atomically(path: Path, text: str) -> None:
+    """Write `text` to `path` through a temporary file and a rename: parallel writers (generator workers) of the
+    same folder never leave a half-written settings file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 class DreamWriter:
     """Writes frames as a DREAM/NDDS folder that DreamReader, DREAM and RoboPose read: 3D values in `units`
     ('m' or 'cm'), pixels unscaled, object pose as NDDS quaternion_xyzw + location."""
@@ -484,8 +492,8 @@ class DreamWriter:
                                    "resolution": size},
             "captured_image_size": size,
         }]}
-        (self.folder / CAMERA_FILE).write_text(json.dumps(camera, indent=2))
-        (self.folder / OBJECT_FILE).write_text(json.dumps({"exported_object_classes": [self.robot.name]}, indent=2))
+        _write_atomically(self.folder / CAMERA_FILE, json.dumps(camera, indent=2))
+        _write_atomically(self.folder / OBJECT_FILE, json.dumps({"exported_object_classes": [self.robot.name]}, indent=2))
 
     def _frame_json(self, joints: np.ndarray, T: np.ndarray, kp3d: np.ndarray, extra: dict | None) -> dict:
         """The NDDS frame dictionary (3D values converted to file units)."""
