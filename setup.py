@@ -55,7 +55,7 @@ setup(
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for a pip install without a ROS distribution
         "ros": ["ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp"],
-        "test": ["pytest"],
+        "test": ["pytest", "rosbags", "scipy"],
     },
     tests_require=["pytest"],
     zip_safe=False,
@@ -66,6 +66,8 @@ setup(
     entry_points={
         "console_scripts": [
             "holo-pose = holo_pose_ros.cli:main",
+            "holo-pose-estimator = holo_pose_ros.nodes.estimator_node:main",
+            "estimator_node = holo_pose_ros.nodes.estimator_node:main",
         ],
     },
 )

@@ -1,0 +1,364 @@
+"""ROS 2 node `holo_pose_estimator`: sensor_msgs/Image + CameraInfo in; the robot's joint states, its base pose in the
+camera frame, keypoints, RViz markers, an annotated image and /diagnostics out. Thin: msg_adapters convert the
+messages and Estimator.estimate does the work, on a worker thread that always takes the newest frame.
+
+Run: `ros2 run holo_pose_ros estimator_node --ros-args -p robot:=panda -p model:=panda -r image:=/camera/image_raw
+-r camera_info:=/camera/camera_info` (or the console script `holo-pose-estimator --ros-args ...`)."""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.resources import config_dir
+from holo_pose_ros.visualization import draw_skeleton
+from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
+                          rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
+                          to_transform_stamped)
+
+try:
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # not on PyPI: /tf needs a ROS distribution; ~/transform carries the same data
+    TFMessage = None
+
+NODE_NAME = "holo_pose_estimator"
+LOG_PERIOD_S = 5.0  # a problem that repeats unchanged is logged at most once per period
+SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=1,
+                        durability=DurabilityPolicy.VOLATILE)
+# name -> (description, read_only); defaults live in config/estimator.yaml only
+PARAMETERS: dict[str, tuple[str, bool]] = {
+    "robot": ("Robot YAML name (config/robots/<robot>.yaml); must be the model's robot.", True),
+    "model": ("Shipped model name (e.g. 'panda') or path of a model card (.yaml) or weights (.safetensors).", True),
+    "device": ("auto | cpu | cuda | cuda:N. CUDA asked for but unavailable: CPU, with a warning.", True),
+    "image_topic": ("Input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8); relative, remappable.", True),
+    "camera_info_topic": ("Input sensor_msgs/CameraInfo topic; the latest valid one is used.", True),
+    "use_rectified_p": ("Take K from CameraInfo.p (rectified images) instead of CameraInfo.k.", True),
+    "base_frame_id": ("Child frame of ~/transform and /tf (parent: the image's frame_id). Empty: "
+                      "<robot>_base_link.", True),
+    "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False),
+    "min_confidence": ("Robot-presence probability [0, 1] below which nothing is published for a frame.", False),
+    "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False),
+    "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False),
+    "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True),
+}
+RANGES = {"min_confidence": dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]),
+          "max_image_pixels": dict(integer_range=[IntegerRange(from_value=1, to_value=2**31 - 1)])}
+
+
+def load_defaults() -> dict:
+    """The node's parameter defaults from config/estimator.yaml; ValueError unless it names exactly PARAMETERS."""
+    path = config_dir() / "estimator.yaml"
+    with open(path) as f:
+        defaults = yaml.safe_load(f)[NODE_NAME]["ros__parameters"]
+    if set(defaults) != set(PARAMETERS):
+        raise ValueError(f"{path}: parameters {sorted(set(defaults) ^ set(PARAMETERS))} are not the node's")
+    return defaults
+
+
+def resolve_device(device: str) -> tuple[str, str | None]:
+    """(torch device, warning or None) for 'auto', 'cpu', 'cuda' or 'cuda:N'; CPU when CUDA is unavailable."""
+    import torch
+
+    name = device.strip().lower()
+    if name == "auto":
+        return ("cuda" if torch.cuda.is_available() else "cpu"), None
+    if name == "cpu":
+        return "cpu", None
+    if not re.fullmatch(r"cuda(:\d+)?", name):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got '{device}'")
+    if not torch.cuda.is_available():
+        return "cpu", f"device '{device}' asked for, but CUDA is not available: running on the CPU"
+    index = int(name.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise ValueError(f"device '{device}': only {torch.cuda.device_count()} CUDA device(s) visible")
+    return name, None
+
+
+class LatestFrame:
+    """A one-slot buffer between the subscription and the worker: a new frame replaces an unprocessed one."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._item = None
+        self._closed = False
+
+    def put(self, item) -> bool:
+        """Store `item`; True when it replaced (dropped) a frame the worker had not taken yet."""
+        with self._cond:
+            dropped = self._item is not None
+            self._item = item
+            self._cond.notify()
+            return dropped
+
+    def take(self):
+        """The newest frame, waiting for one; None once closed."""
+        with self._cond:
+            while self._item is None and not self._closed:
+                self._cond.wait()
+            item, self._item = self._item, None
+            return None if self._closed else item
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+@dataclass
+class Stats:
+    """Counters since start, and the last processed frame's numbers (ms, probability)."""
+
+    received: int = 0
+    processed: int = 0
+    dropped: int = 0
+    not_found: int = 0
+    no_camera_info: int = 0
+    errors: Counter = field(default_factory=Counter)  # 'image', 'camera_info', 'estimator', 'internal'
+    found: bool | None = None  # the last processed frame's
+    confidence: float = float("nan")
+    inference_ms: float = float("nan")
+    latency_ms: float = float("nan")  # message received -> results published
+
+
+class EstimatorNode(Node):
+    """Estimates the robot in the newest image with the latest valid CameraInfo; see the module docstring."""
+
+    def __init__(self, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        defaults = load_defaults()
+        for name, (description, read_only) in PARAMETERS.items():
+            descriptor = ParameterDescriptor(description=description, read_only=read_only, **RANGES.get(name, {}))
+            self.declare_parameter(name, defaults[name], descriptor)
+        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        device, warning = resolve_device(p["device"])
+        if warning:
+            self.get_logger().warning(warning)
+        self.estimator = Estimator.from_model(p["model"], device, tracking=p["tracking"],
+                                              min_confidence=p["min_confidence"])
+        robot = self.estimator.robot
+        if robot.name != p["robot"]:
+            raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")
+        self.parents = robot.keypoint_parents
+        self.base_frame_id = p["base_frame_id"] or f"{robot.name}_base_link"
+        self.use_rectified_p, self.max_pixels = p["use_rectified_p"], p["max_image_pixels"]
+        self.publish_annotated, self.publish_tf = p["publish_annotated"], p["publish_tf"]
+        self.device, self.model = device, p["model"]
+        for name, value, outputs in [("joint_names", robot.joint_names, "~/joint_states"),
+                                     ("keypoint_names", robot.keypoint_names, "~/keypoints and ~/keypoints_2d")]:
+            descriptor = ParameterDescriptor(description=f"Order of {outputs} (from the robot YAML).", read_only=True)
+            self.declare_parameter(name, value, descriptor, ignore_override=True)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.stats = Stats()
+        self._lock = threading.Lock()
+        self._last_logged: dict[str, tuple[float, str]] = {}  # key -> (time, detail) of its last log line
+        self._camera: tuple[CameraInfo, np.ndarray] | None = None  # (message, K) of the latest valid CameraInfo
+        self._period_start, self._period_processed, self._period_errors = time.monotonic(), 0, 0
+
+        self._pubs = {
+            "joint_states": self.create_publisher(JointState, "~/joint_states", 10),
+            "pose": self.create_publisher(PoseStamped, "~/pose", 10),
+            "transform": self.create_publisher(TransformStamped, "~/transform", 10),
+            "keypoints": self.create_publisher(PoseArray, "~/keypoints", 10),
+            "keypoints_2d": self.create_publisher(PointCloud2, "~/keypoints_2d", 10),
+            "markers": self.create_publisher(MarkerArray, "~/markers", 10),
+            "annotated": self.create_publisher(Image, "~/annotated", 10),
+        }
+        # /tf as tf2_ros.TransformBroadcaster does it: a TFMessage publisher, depth 100
+        self._tf = self.create_publisher(TFMessage, "/tf", 100) if TFMessage is not None else None
+        if self._tf is None and self.publish_tf:
+            self.get_logger().info("tf2_msgs is not installed: no /tf; the transform is on ~/transform")
+        self._diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._image_sub = self.create_subscription(Image, p["image_topic"], self._on_image, SENSOR_QOS)
+        self._info_sub = self.create_subscription(CameraInfo, p["camera_info_topic"], self._on_camera_info, SENSOR_QOS)
+        self.create_timer(1.0, self._publish_diagnostics)
+
+        self._frames = LatestFrame()
+        self._worker = threading.Thread(target=self._work, name="holo_pose_estimator_worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"robot '{robot.name}', model '{self.model}' on {device}; listening on {self._image_sub.topic_name} and "
+            f"{self._info_sub.topic_name} (best effort, depth 1); publishing under {self.get_fully_qualified_name()}/")
+
+    # -- parameters and logging ------------------------------------------------------------------------------
+    def _apply_parameters(self, parameters: list) -> None:
+        """Apply the live parameters (the others are read-only; ranges are checked by their descriptors)."""
+        for param in parameters:
+            if param.name == "min_confidence":
+                self.estimator.min_confidence = param.value
+            elif param.name == "tracking":
+                self.estimator.tracking = param.value
+                self.estimator.reset()
+            elif param.name in ("publish_annotated", "publish_tf"):
+                setattr(self, param.name, param.value)
+
+    def _log_throttled(self, key: str, text: str, level: str = "warning", detail: str = "") -> None:
+        """Log `text` unless `key` was logged with the same `detail` less than LOG_PERIOD_S ago."""
+        now = time.monotonic()
+        last_time, last_detail = self._last_logged.get(key, (-LOG_PERIOD_S, None))
+        if detail != last_detail or now - last_time >= LOG_PERIOD_S:
+            self._last_logged[key] = (now, detail)
+            getattr(self.get_logger(), level)(text)
+
+    def _error(self, kind: str, error: Exception) -> None:
+        """Count an error of `kind` and log it (a new reason at once, a repeated one throttled); skip the input."""
+        with self._lock:
+            self.stats.errors[kind] += 1
+            count = self.stats.errors[kind]
+        reason = f"{type(error).__name__}: {error}"
+        self._log_throttled(kind, f"{kind} error #{count}, skipped: {reason}", detail=reason)
+
+    # -- callbacks (executor thread) -------------------------------------------------------------------------
+    def _on_image(self, msg: Image) -> None:
+        dropped = self._frames.put((msg, time.monotonic()))
+        with self._lock:
+            self.stats.received += 1
+            self.stats.dropped += int(dropped)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._camera = (msg, camera_info_to_K(msg, self.use_rectified_p))
+        except CameraInfoError as e:
+            self._camera = None  # never estimate with intrinsics that are known to be wrong
+            self._error("camera_info", e)
+
+    # -- inference (worker thread) ---------------------------------------------------------------------------
+    def _work(self) -> None:
+        while (frame := self._frames.take()) is not None:
+            try:
+                self._process(*frame)
+            except Exception as e:  # the worker must outlive any single frame
+                self._error("internal", e)
+
+    def _process(self, msg: Image, received: float) -> None:
+        """Convert, estimate and publish one frame, or count why not."""
+        camera = self._camera
+        if camera is None:
+            with self._lock:
+                self.stats.no_camera_info += 1
+            self._log_throttled("no_camera_info", f"no valid CameraInfo on {self._info_sub.topic_name} yet: "
+                                                  "skipping images until one arrives")
+            return
+        info, K = camera
+        try:
+            image = image_to_rgb(msg, self.max_pixels)
+        except ImageConversionError as e:
+            return self._error("image", e)
+        try:
+            check_image_size(info, image.shape[1], image.shape[0])
+        except CameraInfoError as e:
+            return self._error("camera_info", e)
+        try:
+            estimate = self.estimator.estimate(image, K)
+        except Exception as e:  # a model failure skips the frame, never the node
+            return self._error("estimator", e)
+        with self._lock:
+            self.stats.processed += 1
+            self.stats.found, self.stats.confidence = estimate.found, estimate.confidence
+            self.stats.inference_ms = estimate.timings_ms.get("total", float("nan"))
+            self.stats.not_found += int(not estimate.found)
+        if not estimate.found:
+            self._log_throttled("not_found", f"robot not found (confidence {estimate.confidence:.2f} < "
+                                             f"{self.estimator.min_confidence:.2f})", "info")
+            return
+        self._publish(msg, image, estimate)
+        with self._lock:
+            self.stats.latency_ms = (time.monotonic() - received) * 1e3
+
+    def _publish(self, msg: Image, image, estimate) -> None:
+        """Every output of a found robot, each with the image's header."""
+        header = msg.header
+        if not header.frame_id:
+            self._log_throttled("frame_id", "images have an empty header.frame_id: poses and transforms have no frame")
+        transform = to_transform_stamped(estimate, header, self.base_frame_id)
+        self._pubs["joint_states"].publish(to_joint_state(estimate, header))
+        self._pubs["pose"].publish(to_pose_stamped(estimate, header))
+        self._pubs["transform"].publish(transform)
+        self._pubs["keypoints"].publish(to_keypoints_3d(estimate, header))
+        self._pubs["keypoints_2d"].publish(to_keypoints_2d(estimate, header))
+        self._pubs["markers"].publish(to_markers(estimate, header, self.parents))
+        if self._tf is not None and self.publish_tf:
+            self._tf.publish(TFMessage(transforms=[transform]))
+        if self.publish_annotated and self._pubs["annotated"].get_subscription_count() > 0:
+            drawn = draw_skeleton(image, estimate.keypoints_2d, self.parents)
+            self._pubs["annotated"].publish(rgb_to_image(drawn, header))
+
+    # -- diagnostics (timer) ---------------------------------------------------------------------------------
+    def _publish_diagnostics(self) -> None:
+        """One DiagnosticStatus: level and message from the last period, counters since start."""
+        now = time.monotonic()
+        with self._lock:
+            s = self.stats
+            rate = (s.processed - self._period_processed) / max(now - self._period_start, 1e-9)
+            new_errors = sum(s.errors.values()) - self._period_errors
+            self._period_start, self._period_processed, self._period_errors = now, s.processed, sum(s.errors.values())
+            level, message = DiagnosticStatus.OK, f"estimating at {rate:.1f} Hz"
+            if s.received == 0:
+                level, message = DiagnosticStatus.WARN, f"no images on {self._image_sub.topic_name} yet"
+            elif self._camera is None:
+                level, message = DiagnosticStatus.WARN, f"no valid CameraInfo on {self._info_sub.topic_name}"
+            elif rate == 0 and new_errors:
+                level, message = DiagnosticStatus.ERROR, "frames are failing: " + ", ".join(
+                    f"{k} {v}" for k, v in sorted(s.errors.items()))
+            elif s.found is False:
+                level, message = DiagnosticStatus.WARN, "robot not found in the last frame"
+            values = {
+                "rate_hz": f"{rate:.2f}", "latency_ms": f"{s.latency_ms:.1f}", "inference_ms": f"{s.inference_ms:.1f}",
+                "confidence": f"{s.confidence:.3f}", "frames_received": s.received, "frames_processed": s.processed,
+                "frames_dropped": s.dropped, "robot_not_found": s.not_found, "skipped_no_camera_info": s.no_camera_info,
+                **{f"errors_{k}": s.errors[k] for k in ("image", "camera_info", "estimator", "internal")},
+                "device": self.device, "model": self.model, "image_topic": self._image_sub.topic_name,
+            }
+        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: pose estimation", message=message,
+                                  hardware_id=self.device,
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()  # about the node, not about a frame
+        self._diagnostics.publish(array)
+
+    def destroy_node(self) -> None:
+        """Stop the worker (it finishes its frame first), then the node."""
+        self._frames.close()
+        self._worker.join()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console-script entry point: run the node until Ctrl-C; 1 when it cannot start (bad model, device...)."""
+    rclpy.init(args=args)
+    try:
+        node = EstimatorNode()
+    except (ValueError, OSError, ParameterException) as e:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {e}")
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

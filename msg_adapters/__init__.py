@@ -1,0 +1,18 @@
+"""ROS message <-> numpy / Estimate conversions for holo_pose_ros. Imports message types and numpy only, never
+torch or the estimator, so bag tools and light clients can use it. Every converted output carries the input
+image's header (stamp and frame_id), never the current time."""
+
+from msg_adapters.camera_info import CameraInfoError, camera_info_to_K, check_image_size
+from msg_adapters.estimate import (keypoints_2d_from_msg, matrix_to_quaternion, to_joint_state, to_keypoints_2d,
+                                   to_keypoints_3d, to_markers, to_pose_stamped, to_transform_stamped)
+from msg_adapters.header import copy_header
+from msg_adapters.image import (DEFAULT_MAX_PIXELS, ENCODINGS, ImageConversionError, image_to_rgb,
+                                rgb_to_image)
+
+__all__ = [
+    "CameraInfoError", "camera_info_to_K", "check_image_size",
+    "keypoints_2d_from_msg", "matrix_to_quaternion", "to_joint_state", "to_keypoints_2d", "to_keypoints_3d",
+    "to_markers", "to_pose_stamped", "to_transform_stamped",
+    "copy_header",
+    "DEFAULT_MAX_PIXELS", "ENCODINGS", "ImageConversionError", "image_to_rgb", "rgb_to_image",
+]

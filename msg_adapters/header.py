@@ -1,0 +1,12 @@
+"""Header propagation: every output gets its own copy of the input image's header (stamp, frame_id)."""
+
+from __future__ import annotations
+
+from builtin_interfaces.msg import Time
+from std_msgs.msg import Header
+
+
+def copy_header(header) -> Header:
+    """A new std_msgs/Header with `header`'s stamp and frame_id (duck-typed: rclpy or rosbags messages)."""
+    return Header(stamp=Time(sec=int(header.stamp.sec), nanosec=int(header.stamp.nanosec)),
+                  frame_id=str(header.frame_id))

@@ -1,0 +1,11 @@
+"""Test-wide ROS 2 environment, set before any rclpy.init: discovery stays on this machine and Fast DDS uses the
+package's shared-memory transport profile (the one the README recommends)."""
+
+import os
+from pathlib import Path
+
+_PROFILE = str(Path(__file__).resolve().parent.parent / "config" / "fastdds_shm.xml")
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.pop("ROS_LOCALHOST_ONLY", None)  # it would override the discovery range (Jazzy)
+os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = _PROFILE
+os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = _PROFILE
