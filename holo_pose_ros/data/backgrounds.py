@@ -59,14 +59,18 @@ def _shapes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     return img
 
 
-_LAYERS = (_gradient, _colour_noise, _stripes_or_checker, _shapes)
+LAYERS = {"gradient": _gradient, "noise": _colour_noise, "stripes": _stripes_or_checker, "shapes": _shapes}
 
 
-def random_background(rng: np.random.Generator, height: int, width: int, layers: tuple[int, int] = (1, 3)) -> np.ndarray:
-    """(H, W, 3) float32 background in [0, 255]: `layers` procedural layers alpha-blended."""
-    n = int(rng.integers(layers[0], layers[1] + 1))
-    img = _LAYERS[rng.integers(len(_LAYERS))](rng, height, width)
-    for _ in range(n - 1):
+def random_background(rng: np.random.Generator, height: int, width: int, layers: tuple[int, int] = (1, 3),
+                      kinds: tuple[str, ...] = tuple(LAYERS)) -> np.ndarray:
+    """(H, W, 3) float32 background in [0, 255]: `layers` procedural layers of the given kinds, alpha-blended."""
+    unknown = set(kinds) - set(LAYERS)
+    if unknown or not kinds:
+        raise ValueError(f"background kinds must be among {sorted(LAYERS)}, got {list(kinds)}")
+    pick = lambda: LAYERS[kinds[rng.integers(len(kinds))]](rng, height, width)  # noqa: E731
+    img = pick()
+    for _ in range(int(rng.integers(layers[0], layers[1] + 1)) - 1):
         alpha = rng.uniform(0.2, 0.7)
-        img = (1 - alpha) * img + alpha * _LAYERS[rng.integers(len(_LAYERS))](rng, height, width)
+        img = (1 - alpha) * img + alpha * pick()
     return img

@@ -89,7 +89,8 @@ class FrameRenderer:
         links = self.model.link_transforms(torch.from_numpy(scene.joints[None]), list(self.meshes))
         poses = {link: scene.T_cam_base @ T[0].numpy() for link, T in links.items()}
         result = self.renderer.render(poses, self.meshes, self.K, scene.materials, scene.light, scene.distractors)
-        background = random_background(rng, job.height, job.width, tuple(cfg["background"]["layers"]))
+        background = random_background(rng, job.height, job.width, tuple(cfg["background"]["layers"]),
+                                       tuple(cfg["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
         image = result.rgba[..., :3].astype(np.float32) * alpha + background * (1.0 - alpha)
         return _post_process(image, cfg["post"], rng), result.labels, scene

@@ -103,7 +103,8 @@ class RenderedViews(torch.utils.data.Dataset):
         robot = {} if mode == "negative" else meshes
         poses = {name: scene.T_cam_base @ links[name][0].numpy() for name in robot}
         result = renderer.render(poses, robot, K_crop, scene.materials, scene.light, scene.distractors)
-        background = random_background(rng, S, S, tuple(gen["background"]["layers"]))
+        background = random_background(rng, S, S, tuple(gen["background"]["layers"]),
+                                       tuple(gen["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
         image = _post_process(result.rgba[..., :3] * alpha + background * (1.0 - alpha), gen["post"], rng)
         image[outside_frame_mask(box, S, W, H)] = 0
