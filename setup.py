@@ -51,6 +51,8 @@ setup(
         # robot descriptions (URDF + meshes), installed offline from PyPI
         "example-robot-data",
         "pybullet",
+        # ROS 2 bags (mcap, sqlite3) without a ROS install: holo-pose dream-to-bag / bag-eval
+        "rosbags",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for a pip install without a ROS distribution
@@ -68,6 +70,10 @@ setup(
             "holo-pose = holo_pose_ros.cli:main",
             "holo-pose-estimator = holo_pose_ros.nodes.estimator_node:main",
             "estimator_node = holo_pose_ros.nodes.estimator_node:main",
+            "holo-pose-replay = holo_pose_ros.nodes.dream_replay_node:main",
+            "dream_replay_node = holo_pose_ros.nodes.dream_replay_node:main",
+            "holo-pose-live-eval = holo_pose_ros.nodes.evaluation_node:main",
+            "evaluation_node = holo_pose_ros.nodes.evaluation_node:main",
         ],
     },
 )

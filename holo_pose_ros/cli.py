@@ -65,6 +65,33 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dream_to_bag(args: argparse.Namespace) -> int:
+    from holo_pose_ros.bags import dream_to_bag
+
+    n = dream_to_bag(args.data, args.out, storage=args.storage, robot=args.robot, units=args.units, rate_hz=args.rate,
+                     start_time_s=args.start_time, frame_id=args.frame_id, limit=args.limit, progress=not args.quiet)
+    print(f"wrote {n} frames (image, camera_info, ground truth) to the {args.storage} bag {args.out}")
+    return 0
+
+
+def _cmd_bag_eval(args: argparse.Namespace) -> int:
+    from holo_pose_ros.bags import bag_eval
+    from holo_pose_ros.evaluation.report import format_report
+
+    summary = bag_eval(args.bag, args.model, args.out, image_topic=args.image_topic,
+                       camera_info_topic=args.info_topic, device=args.device, min_confidence=args.min_confidence,
+                       tracking=args.tracking, storage=args.storage, use_rectified_p=args.use_rectified_p,
+                       limit=args.limit, progress=not args.quiet)
+    print(f"{summary.n_images} images: {summary.n_found} found, {summary.n_not_found} not found, "
+          f"{summary.n_skipped} skipped; estimates: {summary.out}")
+    if summary.report is not None:
+        print(format_report(summary.report))
+        print(f"report: {summary.report_path}")
+    else:
+        print("no ground truth in the bag: no report")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="holo-pose", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -110,6 +137,37 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.set_defaults(func=_cmd_evaluate)
+
+    d = sub.add_parser("dream-to-bag", help="convert a DREAM folder into a ROS 2 bag (images, camera_info, ground "
+                                            "truth), without ROS")
+    d.add_argument("data", help="DREAM folder")
+    d.add_argument("out", help="output bag folder (must not exist)")
+    d.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"], help="rosbag2 storage plugin")
+    d.add_argument("--robot", default=None, help="robot name or YAML (default: from _object_settings.json)")
+    d.add_argument("--units", default="auto", choices=["auto", "m", "cm"], help="3D units of the files")
+    d.add_argument("--rate", type=float, default=10.0, help="frames per second of the synthetic stamps")
+    d.add_argument("--start-time", type=float, default=1.0, help="stamp of the first frame, seconds")
+    d.add_argument("--frame-id", default="camera_color_optical_frame", help="header frame_id of every message")
+    d.add_argument("--limit", type=int, default=None, help="only the first N frames")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=_cmd_dream_to_bag)
+
+    b = sub.add_parser("bag-eval", help="estimate every image of a ROS 2 bag (mcap or sqlite3) without DDS; write "
+                                        "the estimates as a bag, and OUT/report.json when it has ground truth")
+    b.add_argument("--bag", required=True, help="input bag folder")
+    b.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    b.add_argument("--out", required=True, help="output bag folder (must not exist); report.json goes inside")
+    b.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic (default: the bag's only one)")
+    b.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the bag's only one)")
+    b.add_argument("--use-rectified-p", action="store_true", help="K from CameraInfo.p instead of CameraInfo.k")
+    b.add_argument("--min-confidence", type=float, default=None,
+                   help="robot-presence probability below which a frame is not found (default: the estimator's)")
+    b.add_argument("--tracking", action="store_true", help="crop from the previous frame (for video sequences)")
+    b.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"], help="storage of the output bag")
+    b.add_argument("--limit", type=int, default=None, help="only the first N images")
+    b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.set_defaults(func=_cmd_bag_eval)
     return parser
 
 

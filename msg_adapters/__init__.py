@@ -2,17 +2,18 @@
 torch or the estimator, so bag tools and light clients can use it. Every converted output carries the input
 image's header (stamp and frame_id), never the current time."""
 
-from msg_adapters.camera_info import CameraInfoError, camera_info_to_K, check_image_size
-from msg_adapters.estimate import (keypoints_2d_from_msg, matrix_to_quaternion, to_joint_state, to_keypoints_2d,
-                                   to_keypoints_3d, to_markers, to_pose_stamped, to_transform_stamped)
-from msg_adapters.header import copy_header
+from msg_adapters.camera_info import CameraInfoError, camera_info_from_K, camera_info_to_K, check_image_size
+from msg_adapters.estimate import (joint_positions, keypoints_2d_from_msg, pose_array_points, pose_to_matrix,
+                                   to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
+                                   to_transform_stamped)
+from msg_adapters.header import copy_header, make_header, stamp_ns
 from msg_adapters.image import (DEFAULT_MAX_PIXELS, ENCODINGS, ImageConversionError, image_to_rgb,
                                 rgb_to_image)
 
 __all__ = [
-    "CameraInfoError", "camera_info_to_K", "check_image_size",
-    "keypoints_2d_from_msg", "matrix_to_quaternion", "to_joint_state", "to_keypoints_2d", "to_keypoints_3d",
-    "to_markers", "to_pose_stamped", "to_transform_stamped",
-    "copy_header",
+    "CameraInfoError", "camera_info_from_K", "camera_info_to_K", "check_image_size",
+    "joint_positions", "keypoints_2d_from_msg", "pose_array_points", "pose_to_matrix", "to_joint_state",
+    "to_keypoints_2d", "to_keypoints_3d", "to_markers", "to_pose_stamped", "to_transform_stamped",
+    "copy_header", "make_header", "stamp_ns",
     "DEFAULT_MAX_PIXELS", "ENCODINGS", "ImageConversionError", "image_to_rgb", "rgb_to_image",
 ]

@@ -4,6 +4,7 @@ from reaching the estimator. Duck-typed on the fields (k, p, width, height)."""
 from __future__ import annotations
 
 import numpy as np
+from sensor_msgs.msg import CameraInfo
 
 
 class CameraInfoError(ValueError):
@@ -34,3 +35,16 @@ def check_image_size(msg, width: int, height: int) -> None:
     if msg.width and msg.height and (int(msg.width), int(msg.height)) != (width, height):
         raise CameraInfoError(f"CameraInfo is for {msg.width} x {msg.height} px but the image is {width} x "
                               f"{height} px (wrong camera_info topic?)")
+
+
+def camera_info_from_K(K: np.ndarray, width: int, height: int, header) -> CameraInfo:
+    """A CameraInfo of an undistorted pinhole camera (plumb_bob, zero distortion), K and P = [K | 0], R = I."""
+    K = np.asarray(K, dtype=np.float64)
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    msg = CameraInfo(header=header, width=int(width), height=int(height), distortion_model="plumb_bob")
+    msg.d = [0.0] * 5
+    msg.k = K.ravel().tolist()
+    msg.r = np.eye(3).ravel().tolist()
+    msg.p = P.ravel().tolist()
+    return msg

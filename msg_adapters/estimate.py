@@ -1,5 +1,5 @@
 """Estimate -> ROS messages, each with a copy of the input image's header. Duck-typed on the Estimate's fields
-(holo_pose_ros.estimator is never imported here: it pulls in torch). Metres, radians, pixels; camera frame
+(holo_pose_ros.estimator is never imported here: it pulls in torch; only the numpy geometry is). Metres, radians, pixels; camera frame
 OpenCV (x right, y down, z forward).
 
 Outputs and their message types:
@@ -27,6 +27,7 @@ from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
+from holo_pose_ros.geometry.alignment import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from msg_adapters.header import copy_header
 
 if TYPE_CHECKING:
@@ -41,28 +42,8 @@ def _require_found(estimate: "Estimate") -> None:
         raise ValueError("the estimate has no result (robot not found); publish nothing for this frame")
 
 
-def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) unit quaternion, w >= 0, of a 3x3 rotation matrix (Shepperd's method, then normalised)."""
-    m = np.asarray(R, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q) / np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
 def _quaternion(R: np.ndarray) -> Quaternion:
-    x, y, z, w = (float(c) for c in matrix_to_quaternion(R))
+    x, y, z, w = (float(c) for c in matrix_to_quaternion_xyzw(R))
     return Quaternion(x=x, y=y, z=z, w=w)
 
 
@@ -145,3 +126,27 @@ def to_markers(estimate: "Estimate", header, parents: list[int], lifetime_s: flo
     spheres.points = points
     spheres.colors = [ColorRGBA(r=float(1.0 - c), g=float(c), b=0.0, a=1.0) for c in confidence]
     return MarkerArray(markers=[lines, spheres])
+
+
+# -- messages -> numpy (readers of what the converters above write) -----------------------------------------
+
+def pose_array_points(msg) -> np.ndarray:
+    """(N, 3) float64 positions of a geometry_msgs/PoseArray (3D keypoints), metres."""
+    return np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=np.float64).reshape(-1, 3)
+
+
+def pose_to_matrix(pose) -> np.ndarray:
+    """(4, 4) transform of a geometry_msgs/Pose."""
+    q = pose.orientation
+    T = np.eye(4)
+    T[:3, :3] = quaternion_xyzw_to_matrix([q.x, q.y, q.z, q.w])
+    T[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return T
+
+
+def joint_positions(msg, names: list[str]) -> np.ndarray | None:
+    """(J,) positions of a sensor_msgs/JointState in `names` order (matched by name), None if any is missing."""
+    by_name = dict(zip(msg.name, np.asarray(msg.position, dtype=np.float64)))
+    if not all(n in by_name for n in names):
+        return None
+    return np.array([by_name[n] for n in names], dtype=np.float64)
