@@ -9,3 +9,13 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_LOCALHOST_ONLY", None)  # it would override the discovery range (Jazzy)
 os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = _PROFILE
 os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = _PROFILE
+
+import pytest  # noqa: E402
+
+from small_model import save_small_model  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def small_model_card(tmp_path_factory):
+    """Model card of the small untrained Panda network (test/small_model.py), built once per test session."""
+    return save_small_model(tmp_path_factory.mktemp("small_model"))

@@ -6,11 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
-from test_model import SMALL
 
 from holo_pose_ros.bags import (CAMERA_INFO_TOPIC, DEFAULT_FRAME_ID, ESTIMATOR_NS, GROUND_TRUTH_NS, IMAGE_TOPIC,
                                 MSGTYPES, bag_eval, frame_stamp_ns, ground_truth_from_messages)
@@ -20,9 +18,6 @@ from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.evaluation.run import evaluate_folder
-from holo_pose_ros.model.network import HolisticNet, load_model_config
-from holo_pose_ros.model.weights import save_model
-from holo_pose_ros.robots.kinematics import RobotModel
 from msg_adapters import camera_info_to_K, image_to_rgb
 
 N_FRAMES = 3
@@ -36,10 +31,8 @@ def data(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    torch.manual_seed(0)
-    net = HolisticNet(load_model_config(SMALL), RobotModel("panda"))
-    return save_model(net, "panda", tmp_path_factory.mktemp("bag_model") / "small")
+def model(small_model_card):
+    return small_model_card
 
 
 @pytest.fixture(scope="module")

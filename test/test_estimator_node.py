@@ -29,15 +29,10 @@ from visualization_msgs.msg import MarkerArray
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.model.network import HolisticNet, load_model_config
-from holo_pose_ros.model.weights import save_model
 from holo_pose_ros.nodes.estimator_node import EstimatorNode, main
-from holo_pose_ros.robots.kinematics import RobotModel
 from msg_adapters import image_to_rgb, keypoints_2d_from_msg, rgb_to_image
 
 ROOT = Path(__file__).resolve().parent.parent
-SMALL = {**load_model_config("lite").to_dict(), "name": "test-small", "input_size": 64, "heatmap_size": 16,
-         "depth_bins": 8, "deconv_channels": 32, "regressor_hidden": 64}
 OUTPUTS = {"joint_states": JointState, "pose": PoseStamped, "transform": TransformStamped, "keypoints": PoseArray,
            "keypoints_2d": PointCloud2, "markers": MarkerArray, "annotated": Image}
 FRAME_ID = "camera_color_optical_frame"
@@ -122,9 +117,8 @@ class Graph:
 
 
 @pytest.fixture(scope="module")
-def card(tmp_path_factory) -> Path:
-    net = HolisticNet(load_model_config(SMALL), RobotModel("panda")).eval()
-    return save_model(net, "panda", tmp_path_factory.mktemp("model") / "small")
+def card(small_model_card) -> Path:
+    return small_model_card
 
 
 @pytest.fixture(scope="module")

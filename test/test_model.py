@@ -13,9 +13,8 @@ from holo_pose_ros.model.network import HolisticNet, add_kinematics, load_model_
 from holo_pose_ros.model.weights import load_model, save_model
 from holo_pose_ros.robots.kinematics import RobotModel
 from holo_pose_ros.train.losses import supervised_losses, total_loss
+from small_model import SMALL
 
-SMALL = {**load_model_config("lite").to_dict(), "name": "test-small", "input_size": 64, "heatmap_size": 16,
-         "depth_bins": 8, "deconv_channels": 32, "regressor_hidden": 64}
 WEIGHTS = {"joints": 1.0, "rotation": 1.0, "translation": 1.0, "depth": 1.0, "kp2d_reg": 10.0, "kp3d_reg": 10.0,
            "kp2d_fk": 10.0, "kp3d_fk": 10.0, "presence": 0.5}
 

@@ -9,23 +9,18 @@ import time
 import numpy as np
 import pytest
 import rclpy
-import torch
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from test_model import SMALL
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.evaluation.report import per_frame_add
 from holo_pose_ros.evaluation.run import evaluate_folder
-from holo_pose_ros.model.network import HolisticNet, load_model_config
-from holo_pose_ros.model.weights import save_model
 from holo_pose_ros.nodes.dream_replay_node import MAX_RESENDS, DreamReplayNode
 from holo_pose_ros.nodes.estimator_node import EstimatorNode
 from holo_pose_ros.nodes.evaluation_node import EvaluationNode
-from holo_pose_ros.robots.kinematics import RobotModel
 
 N_FRAMES = 3
 DOMAIN_ID = 101 + os.getpid() % 100  # away from the default domain 0 and from parallel test runs
@@ -39,10 +34,8 @@ def data(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    torch.manual_seed(0)
-    net = HolisticNet(load_model_config(SMALL), RobotModel("panda"))
-    return save_model(net, "panda", tmp_path_factory.mktemp("replay_model") / "small")
+def model(small_model_card):
+    return small_model_card
 
 
 def run_graph(data, model, report_path, min_confidence: float, timeout_s: float = 40.0, estimator_params=(),

@@ -9,6 +9,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -16,6 +17,9 @@ import yaml
 from tqdm import tqdm
 
 from holo_pose_ros.resources import config_dir
+
+if TYPE_CHECKING:
+    from holo_pose_ros.data.scene import FrameScene
 
 DISTRACTOR_LABEL = 255
 
@@ -76,7 +80,7 @@ class FrameRenderer:
         self.writer = DreamWriter(job.out, self.model, self.K, job.width, job.height)
         self.colours = {link: mesh.color for link, mesh in self.meshes.items()}
 
-    def frame(self, index: int) -> tuple[np.ndarray, np.ndarray, "FrameScene"]:  # noqa: F821
+    def frame(self, index: int) -> tuple[np.ndarray, np.ndarray, FrameScene]:
         """Render frame `index`: (RGB uint8 image, label mask uint8, the scene drawn)."""
         import torch
 

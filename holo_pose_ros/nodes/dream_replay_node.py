@@ -33,17 +33,15 @@ from __future__ import annotations
 import sys
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from std_msgs.msg import UInt32
 
+from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.bags import (DEFAULT_FRAME_ID, DEFAULT_RATE_HZ, DEFAULT_START_TIME_S, ESTIMATOR_NS, GroundTruth,
                                 estimate_messages, frame_stamp_ns)
 from msg_adapters import camera_info_from_K, make_header, rgb_to_image, stamp_ns
@@ -253,22 +251,7 @@ class DreamReplayNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console-script entry point: replay until Ctrl-C (or until done, with exit_when_done); 1 on a bad start."""
-    rclpy.init(args=args)
-    try:
-        node = DreamReplayNode()
-    except (ValueError, OSError, ParameterException) as e:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {e}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        while rclpy.ok() and not (node.finished and node.exit_when_done):
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(DreamReplayNode, NODE_NAME, args, done=lambda node: node.finished and node.exit_when_done)
 
 
 if __name__ == "__main__":

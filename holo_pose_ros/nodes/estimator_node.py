@@ -15,18 +15,16 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.resources import config_dir
 from holo_pose_ros.visualization import draw_skeleton
@@ -343,21 +341,7 @@ class EstimatorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console-script entry point: run the node until Ctrl-C; 1 when it cannot start (bad model, device...)."""
-    rclpy.init(args=args)
-    try:
-        node = EstimatorNode()
-    except (ValueError, OSError, ParameterException) as e:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {e}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(EstimatorNode, NODE_NAME, args)
 
 
 if __name__ == "__main__":

@@ -26,16 +26,14 @@ import time
 from collections import OrderedDict
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import String, UInt32
 
+from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.bags import (ESTIMATOR_NS, GROUND_TRUTH_NS, REPLAY_NODE, estimate_from_messages,
                                 ground_truth_from_messages)
 from msg_adapters import stamp_ns
@@ -239,22 +237,8 @@ class EvaluationNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console-script entry point: evaluate until the report is written (exit_when_done) or Ctrl-C."""
-    rclpy.init(args=args)
-    try:
-        node = EvaluationNode()
-    except (ValueError, OSError, ParameterException) as e:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {e}")
-        rclpy.try_shutdown()
-        return 1
-    try:
-        while rclpy.ok() and not (node.finished and node.exit_when_done):
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0 if node.report is not None or not node.finished else 1
+    return run_node(EvaluationNode, NODE_NAME, args, done=lambda node: node.finished and node.exit_when_done,
+                    exit_code=lambda node: 0 if node.report is not None or not node.finished else 1)
 
 
 if __name__ == "__main__":
