@@ -74,6 +74,7 @@ setup(
             "dream_replay_node = holo_pose_ros.nodes.dream_replay_node:main",
             "holo-pose-live-eval = holo_pose_ros.nodes.evaluation_node:main",
             "evaluation_node = holo_pose_ros.nodes.evaluation_node:main",
+            "holo-pose-demo = holo_pose_ros.nodes.demo:main",
         ],
     },
 )

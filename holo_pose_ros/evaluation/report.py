@@ -158,7 +158,7 @@ def format_report(report: dict) -> str:
         f"joint error mean    {_num(joints['mean'])} deg"
         + (f"  (prismatic {_num(joints['mean_mm'])} mm)" if "mean_mm" in joints else ""),
     ]
-    lines += [f"  {name:<18}{_num(joints[name])} {unit}" for name, unit in units.items()
+    lines += [f"  {name:<18} {_num(joints[name])} {unit}" for name, unit in units.items()
               if name not in ("mean", "mean_mm")]
     for key, label, unit in (("rotation_error_deg", "rotation error", "deg"),
                              ("depth_error_mm", "root depth error", "mm"),
