@@ -35,15 +35,15 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from std_msgs.msg import UInt32
 
+from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
-from holo_pose_ros.bags import (DEFAULT_FRAME_ID, DEFAULT_RATE_HZ, DEFAULT_START_TIME_S, ESTIMATOR_NS, GroundTruth,
-                                estimate_messages, frame_stamp_ns)
+from holo_pose_ros.bags import GroundTruth, estimate_messages, frame_stamp_ns
 from msg_adapters import camera_info_from_K, make_header, rgb_to_image, stamp_ns
 
 NODE_NAME = "dream_replay"
@@ -59,29 +59,29 @@ GROUND_TRUTH_QOS = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability
                               history=HistoryPolicy.KEEP_LAST, depth=100)
 
 _POSITIVE = dict(floating_point_range=[FloatingPointRange(from_value=1e-3, to_value=1e6)])
-# name -> (default, description, extra descriptor fields)
-PARAMETERS: dict[str, tuple[object, str, dict]] = {
-    "folder": ("", "DREAM folder to replay (required): _camera_settings.json + NNNNNN.json + NNNNNN.rgb.jpg|png.", {}),
-    "robot": ("panda", "Robot YAML name or path: keypoint and joint names and order of the ground truth.", {}),
-    "units": ("auto", "3D units of the folder's files: auto (detected), m or cm.", {}),
-    "rate": (DEFAULT_RATE_HZ, "Frames per second: the publishing rate (unless lockstep) and the spacing of the "
-                              "synthetic stamps (always).", _POSITIVE),
-    "lockstep": (False, "Send the next frame only when the estimator has handled this one (see the module "
-                        "docstring): deterministic evaluation at the estimator's own speed.", {}),
-    "lockstep_timeout_s": (10.0, "Lockstep: seconds to wait for a frame to be handled before moving on.", _POSITIVE),
-    "estimator": (ESTIMATOR_NS, "Lockstep: fully qualified name of the estimator node; its joint_states and its "
-                                "status on /diagnostics acknowledge frames.", {}),
-    "loop": (False, "Start again from the first frame after the last (stamps keep increasing); no ~/done.", {}),
-    "limit": (0, "Replay only the first N frames of the folder (0: all).",
-              dict(integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1)])),
-    "frame_id": (DEFAULT_FRAME_ID, "header.frame_id of every message (the camera's optical frame).", {}),
-    "start_time_s": (DEFAULT_START_TIME_S, "Stamp of the first frame, seconds (synthetic, reproducible stamps).",
-                     dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e10)])),
-    "image_topic": ("image", "Output sensor_msgs/Image topic (rgb8); relative, remappable.", {}),
-    "camera_info_topic": ("camera_info", "Output sensor_msgs/CameraInfo topic; relative, remappable.", {}),
-    "reliable": (True, "Publish images and camera_info RELIABLE (else BEST_EFFORT); depth 5, volatile.", {}),
-    "wait_for_subscriber": (True, "Start only once the image topic has a subscriber.", {}),
-    "exit_when_done": (False, "main(): exit once ~/done is published (the latched ~/done goes with the node).", {}),
+# name -> (description, read_only, ranges); defaults live in config/dream_replay.yaml only
+PARAMETERS: ParameterSpecs = {
+    "folder": ("DREAM folder to replay (required): _camera_settings.json + NNNNNN.json + NNNNNN.rgb.jpg|png.", True, {}),
+    "robot": ("Robot YAML name or path: keypoint and joint names and order of the ground truth.", True, {}),
+    "units": ("3D units of the folder's files: auto (detected), m or cm.", True, {}),
+    "rate": ("Frames per second: the publishing rate (unless lockstep) and the spacing of the "
+             "synthetic stamps (always).", True, _POSITIVE),
+    "lockstep": ("Send the next frame only when the estimator has handled this one (see the module "
+                 "docstring): deterministic evaluation at the estimator's own speed.", True, {}),
+    "lockstep_timeout_s": ("Lockstep: seconds to wait for a frame to be handled before moving on.", True, _POSITIVE),
+    "estimator": ("Lockstep: fully qualified name of the estimator node; its joint_states and its "
+                  "status on /diagnostics acknowledge frames.", True, {}),
+    "loop": ("Start again from the first frame after the last (stamps keep increasing); no ~/done.", True, {}),
+    "limit": ("Replay only the first N frames of the folder (0: all).",
+              True, dict(integer_range=[IntegerRange(from_value=0, to_value=2**31 - 1)])),
+    "frame_id": ("header.frame_id of every message (the camera's optical frame).", True, {}),
+    "start_time_s": ("Stamp of the first frame, seconds (synthetic, reproducible stamps).",
+                     True, dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e10)])),
+    "image_topic": ("Output sensor_msgs/Image topic (rgb8); relative, remappable.", True, {}),
+    "camera_info_topic": ("Output sensor_msgs/CameraInfo topic; relative, remappable.", True, {}),
+    "reliable": ("Publish images and camera_info RELIABLE (else BEST_EFFORT); depth 5, volatile.", True, {}),
+    "wait_for_subscriber": ("Start only once the image topic has a subscriber.", True, {}),
+    "exit_when_done": ("main(): exit once ~/done is published (the latched ~/done goes with the node).", True, {}),
 }
 
 
@@ -98,10 +98,7 @@ class DreamReplayNode(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        for name, (default, description, extra) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True,
-                                                                      **extra))
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        p = declare_parameters(self, "dream_replay.yaml", PARAMETERS)
         if not p["folder"]:
             raise ValueError("parameter 'folder' (the DREAM folder to replay) is required")
         from holo_pose_ros.data.dream import DreamReader

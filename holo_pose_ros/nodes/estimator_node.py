@@ -15,7 +15,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -24,9 +23,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.resources import config_dir
 from holo_pose_ros.visualization import draw_skeleton
 from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
                           rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
@@ -41,35 +40,25 @@ NODE_NAME = "holo_pose_estimator"
 LOG_PERIOD_S = 5.0  # a problem that repeats unchanged is logged at most once per period
 SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=1,
                         durability=DurabilityPolicy.VOLATILE)
-# name -> (description, read_only); defaults live in config/estimator.yaml only
-PARAMETERS: dict[str, tuple[str, bool]] = {
-    "robot": ("Robot YAML name (config/robots/<robot>.yaml); must be the model's robot.", True),
-    "model": ("Shipped model name (e.g. 'panda') or path of a model card (.yaml) or weights (.safetensors).", True),
-    "device": ("auto | cpu | cuda | cuda:N. CUDA asked for but unavailable: CPU, with a warning.", True),
-    "image_topic": ("Input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8); relative, remappable.", True),
-    "camera_info_topic": ("Input sensor_msgs/CameraInfo topic; the latest valid one is used.", True),
-    "use_rectified_p": ("Take K from CameraInfo.p (rectified images) instead of CameraInfo.k.", True),
+# name -> (description, read_only, ranges); defaults live in config/estimator.yaml only
+_PROBABILITY = dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)])
+_PIXELS = dict(integer_range=[IntegerRange(from_value=1, to_value=2**31 - 1)])
+PARAMETERS: ParameterSpecs = {
+    "robot": ("Robot YAML name (config/robots/<robot>.yaml); must be the model's robot.", True, {}),
+    "model": ("Shipped model name (e.g. 'panda') or path of a model card (.yaml) or weights (.safetensors).", True, {}),
+    "device": ("auto | cpu | cuda | cuda:N. CUDA asked for but unavailable: CPU, with a warning.", True, {}),
+    "image_topic": ("Input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8); relative, remappable.", True, {}),
+    "camera_info_topic": ("Input sensor_msgs/CameraInfo topic; the latest valid one is used.", True, {}),
+    "use_rectified_p": ("Take K from CameraInfo.p (rectified images) instead of CameraInfo.k.", True, {}),
     "base_frame_id": ("Child frame of ~/transform and /tf (parent: the image's frame_id). Empty: "
-                      "<robot>_base_link.", True),
-    "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False),
-    "min_confidence": ("Robot-presence probability [0, 1] below which nothing is published for a frame.", False),
-    "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False),
-    "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False),
-    "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True),
+                      "<robot>_base_link.", True, {}),
+    "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False, {}),
+    "min_confidence": ("Robot-presence probability [0, 1] below which nothing is published for a frame.", False,
+                       _PROBABILITY),
+    "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
+    "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
+    "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
 }
-RANGES = {"min_confidence": dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0)]),
-          "max_image_pixels": dict(integer_range=[IntegerRange(from_value=1, to_value=2**31 - 1)])}
-
-
-def load_defaults() -> dict:
-    """The node's parameter defaults from config/estimator.yaml; ValueError unless it names exactly PARAMETERS."""
-    path = config_dir() / "estimator.yaml"
-    with open(path) as f:
-        defaults = yaml.safe_load(f)[NODE_NAME]["ros__parameters"]
-    if set(defaults) != set(PARAMETERS):
-        raise ValueError(f"{path}: parameters {sorted(set(defaults) ^ set(PARAMETERS))} are not the node's")
-    return defaults
-
 
 def resolve_device(device: str) -> tuple[str, str | None]:
     """(torch device, warning or None) for 'auto', 'cpu', 'cuda' or 'cuda:N'; CPU when CUDA is unavailable."""
@@ -141,11 +130,7 @@ class EstimatorNode(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        defaults = load_defaults()
-        for name, (description, read_only) in PARAMETERS.items():
-            descriptor = ParameterDescriptor(description=description, read_only=read_only, **RANGES.get(name, {}))
-            self.declare_parameter(name, defaults[name], descriptor)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        p = declare_parameters(self, "estimator.yaml", PARAMETERS)
         device, warning = resolve_device(p["device"])
         if warning:
             self.get_logger().warning(warning)

@@ -27,15 +27,15 @@ from collections import OrderedDict
 
 import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import String, UInt32
 
+from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
-from holo_pose_ros.bags import (ESTIMATOR_NS, GROUND_TRUTH_NS, REPLAY_NODE, estimate_from_messages,
-                                ground_truth_from_messages)
+from holo_pose_ros.bags import estimate_from_messages, ground_truth_from_messages
 from msg_adapters import stamp_ns
 
 NODE_NAME = "holo_pose_evaluation"
@@ -50,19 +50,19 @@ LATCHED = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=Durabili
                      history=HistoryPolicy.KEEP_LAST, depth=1)
 
 _SECONDS = dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e6)])
-# name -> (default, description, extra descriptor fields)
-PARAMETERS: dict[str, tuple[object, str, dict]] = {
-    "robot": ("panda", "Robot YAML name or path: joint and keypoint names and order of the report.", {}),
-    "estimator": (ESTIMATOR_NS, "Namespace of the estimate topics (the estimator node's full name).", {}),
-    "ground_truth": (GROUND_TRUTH_NS, "Namespace of the ground-truth topics (the replay's ~/ground_truth).", {}),
-    "done_topic": (f"/{REPLAY_NODE}/done", "std_msgs/UInt32 published by the replay when every frame was sent.", {}),
-    "report_path": ("holo_pose_report.json", "Where to write report.json ('' : do not write, only publish).", {}),
-    "done_grace_s": (2.0, "Seconds after done to wait for answers still in flight; then unanswered = not found.",
-                     _SECONDS),
-    "idle_timeout_s": (30.0, "Write the report after this many seconds without any message when no done came "
-                             "(0: never).", _SECONDS),
-    "max_pending": (10000, "Frames kept in the synchronizer; the oldest are dropped beyond this.", {}),
-    "exit_when_done": (True, "main(): exit once the report is written.", {}),
+# name -> (description, read_only, ranges); defaults live in config/evaluation.yaml only
+PARAMETERS: ParameterSpecs = {
+    "robot": ("Robot YAML name or path: joint and keypoint names and order of the report.", True, {}),
+    "estimator": ("Namespace of the estimate topics (the estimator node's full name).", True, {}),
+    "ground_truth": ("Namespace of the ground-truth topics (the replay's ~/ground_truth).", True, {}),
+    "done_topic": ("std_msgs/UInt32 published by the replay when every frame was sent.", True, {}),
+    "report_path": ("Where to write report.json ('' : do not write, only publish).", True, {}),
+    "done_grace_s": ("Seconds after done to wait for answers still in flight; then unanswered = not found.",
+                     True, _SECONDS),
+    "idle_timeout_s": ("Write the report after this many seconds without any message when no done came "
+                       "(0: never).", True, _SECONDS),
+    "max_pending": ("Frames kept in the synchronizer; the oldest are dropped beyond this.", True, {}),
+    "exit_when_done": ("main(): exit once the report is written.", True, {}),
 }
 
 
@@ -98,10 +98,7 @@ class EvaluationNode(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        for name, (default, description, extra) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True,
-                                                                      **extra))
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        p = declare_parameters(self, "evaluation.yaml", PARAMETERS)
         from holo_pose_ros.robots.kinematics import RobotModel
 
         self.robot = RobotModel(p["robot"])

@@ -1,0 +1,32 @@
+"""Node parameters: declared with descriptions (and ranges) in code, their defaults read from the node's YAML in
+config/, so every default lives in exactly one place that users can also pass to `--params-file`."""
+
+from __future__ import annotations
+
+import yaml
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+
+from holo_pose_ros.resources import config_dir
+
+# name -> (description, read_only, extra ParameterDescriptor fields such as ranges)
+ParameterSpecs = dict[str, tuple[str, bool, dict]]
+
+
+def load_defaults(file_name: str, node_name: str, specs: ParameterSpecs) -> dict:
+    """`node_name: ros__parameters:` of config/<file_name>; ValueError unless it names exactly the node's parameters."""
+    path = config_dir() / file_name
+    with open(path) as f:
+        defaults = yaml.safe_load(f)[node_name]["ros__parameters"]
+    if set(defaults) != set(specs):
+        raise ValueError(f"{path}: parameters {sorted(set(defaults) ^ set(specs))} are not the node's")
+    return defaults
+
+
+def declare_parameters(node: Node, file_name: str, specs: ParameterSpecs) -> dict:
+    """Declare every parameter of `specs` on `node` with its YAML default; returns {name: value} after overrides."""
+    defaults = load_defaults(file_name, node.get_name(), specs)
+    for name, (description, read_only, extra) in specs.items():
+        node.declare_parameter(name, defaults[name], ParameterDescriptor(description=description, read_only=read_only,
+                                                                         **extra))
+    return {name: node.get_parameter(name).value for name in specs}
