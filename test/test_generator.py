@@ -1,5 +1,6 @@
 """The synthetic generator on real renders: labels agree with geometry, output is deterministic, CLI works."""
 
+import json
 import subprocess
 import sys
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 
 from holo_pose_ros.data.dream import DreamReader
-from holo_pose_ros.data.generator import DISTRACTOR_LABEL, generate
+from holo_pose_ros.data.generator import DISTRACTOR_LABEL, SETTINGS_FILE, generate
 from holo_pose_ros.geometry.camera import project
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -56,6 +57,8 @@ def test_panda_frames_are_consistent(panda_folder):
     q = np.stack([f.joints for f in frames])
     assert (q >= model.lower.numpy() - 1e-9).all() and (q <= model.upper.numpy() + 1e-9).all()
     assert len({tuple(f.joints.round(6)) for f in frames}) == len(frames)
+    settings = json.loads((panda_folder / SETTINGS_FILE).read_text())  # how the folder was made
+    assert (settings["robot"], settings["n"], settings["seed"]) == ("panda", 8, 3) and "--seed 3" in settings["command"]
 
 
 @pytest.mark.parametrize("robot", ["kuka", "baxter"])

@@ -4,6 +4,7 @@ Frame i depends only on (seed, i), so the output is identical for any number of 
 
 from __future__ import annotations
 
+import json
 import multiprocessing as mp
 import os
 import time
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
     from holo_pose_ros.data.scene import FrameScene
 
 DISTRACTOR_LABEL = 255
+SETTINGS_FILE = "_generator_settings.json"  # how the folder was made (DREAM readers ignore it)
 
 
 def load_generator_config(config: str | Path) -> dict:
@@ -145,6 +147,10 @@ def generate(robot: str, n: int, out: str | Path, seed: int = 0, workers: int | 
         raise ValueError("n must be at least 1")
     job = make_job(robot, out, seed, width, height, config)
     Path(out).mkdir(parents=True, exist_ok=True)
+    settings = {"robot": robot, "n": n, "seed": seed, "width": width, "height": height, "config": str(config),
+                "generator": job.config, "command": f"holo-pose generate --robot {robot} --n {n} --out {out} "
+                                                      f"--seed {seed} --width {width} --height {height} --config {config}"}
+    (Path(out) / SETTINGS_FILE).write_text(json.dumps(settings, indent=2))
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     bar = tqdm(total=n, desc=f"generate {robot}", unit="frame", disable=not progress)
     start = time.perf_counter()

@@ -29,11 +29,13 @@ def resolve_model(model: str | Path) -> Path:
     return path
 
 
-def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None = None) -> Path:
-    """Write `path`.safetensors and its card `path`.yaml (robot, model config, plus `card`)."""
+def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None = None,
+               dtype: torch.dtype = torch.float32) -> Path:
+    """Write `path`.safetensors and its card `path`.yaml (robot, model config, plus `card`). float16 halves the
+    file (shipped weights); loading casts back to float32."""
     path = Path(path).with_suffix("")
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items() if v.dtype.is_floating_point}
+    state = {k: v.detach().to(dtype).cpu().contiguous() for k, v in net.state_dict().items() if v.dtype.is_floating_point}
     save_file(state, str(path.with_suffix(".safetensors")), metadata={"robot": robot, "config": net.cfg.name})
     full_card = {"robot": robot, "weights": path.with_suffix(".safetensors").name, "model": net.cfg.to_dict(), **(card or {})}
     with open(path.with_suffix(".yaml"), "w") as f:
