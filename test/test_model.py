@@ -125,3 +125,15 @@ def test_weights_round_trip_and_estimator(tmp_path, robot, views):
                              (image, K_img * np.nan)]:
         with pytest.raises(ValueError):
             estimator.estimate(bad_image, bad_K)
+
+
+def test_the_papers_full_configuration_builds_and_runs(robot):
+    cfg = load_model_config("full")
+    net = HolisticNet(cfg, robot).eval()
+    assert net.depth_backbone is not None  # DepthNet has its own backbone, as in the paper
+    S = cfg.input_size
+    K = torch.tensor([[[400.0, 0, S / 2], [0, 400.0, S / 2], [0, 0, 1]]])
+    with torch.no_grad():
+        out = net(torch.rand(1, 3, S, S), K)
+    assert out["uv"].shape == (1, robot.n_keypoints, 2) and out["depth"].shape == (1,)
+    assert sum(p.numel() for p in net.parameters()) > 30e6
