@@ -66,24 +66,35 @@ class Estimator:
         self._previous = None
 
     @torch.inference_mode()
-    def _forward(self, image: np.ndarray, K: np.ndarray, box: np.ndarray,
-                 known_joints: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """One network pass on the crop `box` of `image`: its outputs (batch of 1, numpy) and the crop's K."""
+    def _network(self, image: np.ndarray, K: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> dict:
+        """One network pass on the crop `box` of `image` (batch of 1); adds to the 'crop' and 'network' timings."""
+        t0 = time.perf_counter()
         K_crop = crop_affine(box, self.size) @ K
         crop = torch.from_numpy(crop_image(image, box, self.size)).to(self.device)
         x = crop.permute(2, 0, 1)[None].float() / 255.0
+        t1 = time.perf_counter()
         out = self.net(x, torch.from_numpy(K_crop[None]).float().to(self.device))
+        t2 = time.perf_counter()
+        timings["crop"] = timings.get("crop", 0.0) + (t1 - t0) * 1e3
+        timings["network"] = timings.get("network", 0.0) + (t2 - t1) * 1e3
+        return out
+
+    @torch.inference_mode()
+    def _kinematics(self, out: dict, known_joints: np.ndarray | None, timings: dict[str, float]) -> dict[str, np.ndarray]:
+        """FK of the crop pass (with the known joints, if given) -> numpy outputs; the 'kinematics' timing."""
+        t0 = time.perf_counter()
         if known_joints is not None:
             out["joints"] = torch.as_tensor(known_joints, dtype=out["joints"].dtype, device=self.device).reshape(1, -1)
-        out = add_kinematics(self.robot, out)
-        return {k: v[0].detach().cpu().double().numpy() for k, v in out.items()}, K_crop
+        result = {k: v[0].detach().cpu().double().numpy() for k, v in add_kinematics(self.robot, out).items()}
+        timings["kinematics"] = (time.perf_counter() - t0) * 1e3
+        return result
 
-    def localize(self, image: np.ndarray, K: np.ndarray) -> tuple[float, np.ndarray]:
+    def localize(self, image: np.ndarray, K: np.ndarray, timings: dict[str, float] | None = None) -> tuple[float, np.ndarray]:
         """The first pass over the whole letterboxed image: (presence probability, 2D keypoints in image px)."""
         box = full_image_box(image.shape[1], image.shape[0])
-        out, _ = self._forward(image, K, box)
-        uv = _apply(np.linalg.inv(crop_affine(box, self.size)), out["uv"])
-        return float(1 / (1 + np.exp(-out["presence_logit"]))), uv
+        out = self._network(image, K, box, {} if timings is None else timings)
+        uv = _apply(np.linalg.inv(crop_affine(box, self.size)), out["uv"][0].double().cpu().numpy())
+        return float(torch.sigmoid(out["presence_logit"][0])), uv
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
@@ -97,14 +108,14 @@ class Estimator:
         if tracked:
             uv = self._previous.keypoints_2d
         else:
-            presence, uv = self.localize(image, K)
+            presence, uv = self.localize(image, K, timings)
             timings["localize"] = (time.perf_counter() - start) * 1e3
             if presence < self.min_confidence:
                 self._previous = None
                 return Estimate(False, presence, timings_ms={**timings, "total": timings["localize"]}, **names)
         box = crop_box_from_keypoints(uv, W, H, CROP_MARGIN)
         t0 = time.perf_counter()
-        out, _ = self._forward(image, K, box, known_joints)
+        out = self._kinematics(self._network(image, K, box, timings), known_joints, timings)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
         confidence = float(1 / (1 + np.exp(-out["presence_logit"])))
         if confidence < self.min_confidence:
