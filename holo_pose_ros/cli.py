@@ -92,6 +92,20 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_benchmark(args: argparse.Namespace) -> int:
+    import json
+
+    from holo_pose_ros.benchmark import benchmark, format_benchmark
+
+    result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
+                       threads=args.threads)
+    print(format_benchmark(result))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+        print(f"json: {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="holo-pose", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -168,6 +182,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_cmd_bag_eval)
+
+    m = sub.add_parser("benchmark", help="per-stage latency, frames/s, GFLOPs and memory of the deployed pipeline")
+    m.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    m.add_argument("--data", required=True, help="DREAM folder of frames to estimate (e.g. holo-pose generate)")
+    m.add_argument("--frames", type=int, default=100, help="timed frames (after 5 untimed warm-up frames)")
+    m.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
+    m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    m.add_argument("--json", default=None, help="write the figures to this JSON file")
+    m.set_defaults(func=_cmd_benchmark)
     return parser
 
 

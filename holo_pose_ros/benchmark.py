@@ -1,0 +1,106 @@
+"""Speed of the deployed pipeline on generated frames, stage by stage: Image message -> RGB, localization (the
+whole first pass), crop and network (summed over both passes), forward kinematics, output messages. Latencies in milliseconds (p50 / p95 / max), frames per
+second, GFLOPs of one network pass (torch's FlopCounterMode), parameters, peak resident memory. ROS-free
+(message types only, through msg_adapters)."""
+
+from __future__ import annotations
+
+import platform
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from std_msgs.msg import Header
+
+from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.estimator import Estimator
+from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers,
+                          to_pose_stamped, to_transform_stamped)
+
+STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "messages", "total")
+
+
+def network_gflops(estimator: Estimator) -> float:
+    """GFLOPs of one network pass at the model's input size (multiply-adds counted as 2 FLOPs)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    S = estimator.size
+    x = torch.rand(1, 3, S, S, device=estimator.device)
+    K = torch.tensor([[[S, 0.0, S / 2], [0.0, S, S / 2], [0.0, 0.0, 1.0]]], device=estimator.device)
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        estimator.net(x, K)
+    return counter.get_total_flops() / 1e9
+
+
+def _messages(estimate, header: Header, parents: list[int]) -> None:
+    """Build every output message of the estimator node for one estimate."""
+    to_joint_state(estimate, header)
+    to_pose_stamped(estimate, header)
+    to_transform_stamped(estimate, header, "robot_base_link")
+    to_keypoints_3d(estimate, header)
+    to_keypoints_2d(estimate, header)
+    to_markers(estimate, header, parents)
+
+
+def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
+              threads: int | None = None, warmup: int = 5) -> dict:
+    """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures."""
+    if threads:
+        torch.set_num_threads(threads)
+    estimator = Estimator.from_model(model, device=device, tracking=tracking, min_confidence=0.0)
+    reader = DreamReader(data, estimator.robot)
+    pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
+    parents = estimator.robot.keypoint_parents
+    samples = {stage: [] for stage in STAGES}
+    for i in range(warmup + frames):
+        msg, K = pool[i % len(pool)]
+        t0 = time.perf_counter()
+        image = image_to_rgb(msg)
+        t1 = time.perf_counter()
+        estimate = estimator.estimate(image, K)
+        t2 = time.perf_counter()
+        if estimate.found:
+            _messages(estimate, msg.header, parents)
+        t3 = time.perf_counter()
+        if i < warmup:
+            continue
+        timings = estimate.timings_ms
+        samples["image_conversion"].append((t1 - t0) * 1e3)
+        samples["localize"].append(timings.get("localize", 0.0))
+        for stage in ("crop", "network", "kinematics"):
+            samples[stage].append(timings.get(stage, 0.0))
+        samples["messages"].append((t3 - t2) * 1e3)
+        samples["total"].append((t3 - t0) * 1e3)
+    stats = {stage: _summary(np.array(v)) for stage, v in samples.items()}
+    total = np.array(samples["total"])
+    return {
+        "model": str(model), "robot": estimator.robot.name, "config": estimator.net.cfg.name,
+        "input_size": estimator.size, "tracking": tracking, "frames": frames,
+        "fps": float(1e3 / total.mean()), "latency_ms_p50": stats["total"]["p50"],
+        "latency_ms_p95": stats["total"]["p95"], "latency_ms_max": stats["total"]["max"],
+        "stages_ms": stats, "gflops": network_gflops(estimator), "passes_per_frame": 1 if tracking else 2,
+        "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "device": str(estimator.device) if estimator.device.type != "cpu" else f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)",
+        "backend": "torch",
+    }
+
+
+def _summary(values: np.ndarray) -> dict[str, float]:
+    return {"mean": float(values.mean()), "p50": float(np.percentile(values, 50)),
+            "p95": float(np.percentile(values, 95)), "max": float(values.max())}
+
+
+def format_benchmark(result: dict) -> str:
+    """A terminal table of a benchmark result."""
+    lines = [f"{result['model']} ({result['config']}, {result['input_size']} px, "
+             f"{'tracking: 1 pass' if result['tracking'] else 'localize + crop: 2 passes'}) on {result['device']}, "
+             f"backend {result['backend']}",
+             f"{'stage':<18}{'mean':>8}{'p50':>8}{'p95':>8}{'max':>8}  ms"]
+    for stage, s in result["stages_ms"].items():
+        lines.append(f"{stage:<18}{s['mean']:8.1f}{s['p50']:8.1f}{s['p95']:8.1f}{s['max']:8.1f}")
+    lines.append(f"{result['fps']:.1f} frames/s; {result['gflops']:.2f} GFLOPs a pass; {result['params_m']:.1f} M "
+                 f"parameters; peak RSS {result['peak_rss_mb']:.0f} MB")
+    return "\n".join(lines)
