@@ -23,9 +23,9 @@ $(STAMP): setup.py package.xml | sysdeps
 	$(PY) -m pip install -q -e '.[ros,test]'
 	touch $@
 
+# The main job: replay -> estimator (shipped Panda weights) -> live evaluation, as a real ROS 2 graph.
 demo: install
-	$(VENV)/bin/holo-pose generate --robot panda --n 24 --out $(DEMO) --seed 0
-	$(VENV)/bin/holo-pose show $(DEMO) --robot panda --out $(DEMO)/preview.png
+	$(VENV)/bin/holo-pose-demo --model panda --frames 12 --out $(DEMO)
 
 test: install
 	$(PY) -m pytest -q test

@@ -3,6 +3,7 @@ configuration, how it was trained and what it scored. `--model panda` resolves t
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -49,8 +50,9 @@ def load_model(model: str | Path, device: str | torch.device = "cpu") -> tuple[H
     with open(card_path) as f:
         card = yaml.safe_load(f)
     robot = RobotModel(card["robot"], device=device)
-    cfg = load_model_config({**card["model"], "pretrained": False, "depth_pretrained": False})
-    net = HolisticNet(cfg, robot)
+    cfg = load_model_config(card["model"])
+    net = HolisticNet(replace(cfg, pretrained=False, depth_pretrained=False), robot)  # the weights come from the file
+    net.cfg = cfg
     state = load_file(str(card_path.parent / card["weights"]))
     missing, unexpected = net.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.endswith("num_batches_tracked")]
