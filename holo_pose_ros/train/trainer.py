@@ -201,11 +201,12 @@ class Trainer:
             if new:
                 writer.writeheader()
             writer.writerow(row)
-        self.save_checkpoint(optimizer)
         auc = report.get("add_auc")
-        if auc is not None and auc > self.best_auc:
+        improved = auc is not None and auc > self.best_auc
+        if improved:
             self.best_auc = auc
-            self.save_checkpoint(optimizer)
+        self.save_checkpoint(optimizer)  # once, with the best AUC so far, so a resumed run keeps the right best
+        if improved:
             return save_model(self.net, self.cfg["robot"], self.out / "best", {
                 "training": {"config": self.cfg, "steps": self.step, "samples": self.step * self.cfg["batch_size"]},
                 "validation": {k: report[k] for k in ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm")},
