@@ -81,13 +81,21 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
         "estimator": _node("estimator_node", {"robot": robot, "model": model}, logs / "estimator.log", env),
         "evaluation": _node("evaluation_node", {"robot": robot, "report_path": str(report_path.resolve())},
                             logs / "evaluation.log", env),
-        "replay": _node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot, "lockstep": True,
-                                              "exit_when_done": True, "lockstep_timeout_s": 60.0},
-                        logs / "replay.log", env),
     }
-    print(f"ROS 2 graph up (domain {env['ROS_DOMAIN_ID']}): replay -> estimator -> evaluation; logs in {logs}")
     rclpy.init()
     watcher = Watcher(out / "annotated")
+    # Frames start only once the estimator and this watcher see each other: ~/annotated is published only while
+    # someone subscribes, so a watcher discovered late would miss the first frames.
+    deadline = time.monotonic() + min(timeout_s, 120.0)
+    while watcher.count_publishers(f"{ESTIMATOR_NS}/annotated") == 0 and time.monotonic() < deadline \
+            and processes["estimator"].poll() is None:
+        rclpy.spin_once(watcher, timeout_sec=0.1)
+    for _ in range(10):  # discovery is not instantaneous in both directions
+        rclpy.spin_once(watcher, timeout_sec=0.1)
+    processes["replay"] = _node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot, "lockstep": True,
+                                                      "exit_when_done": True, "lockstep_timeout_s": 60.0},
+                                logs / "replay.log", env)
+    print(f"ROS 2 graph up (domain {env['ROS_DOMAIN_ID']}): replay -> estimator -> evaluation; logs in {logs}")
     start, code = time.monotonic(), 0
     try:
         while processes["evaluation"].poll() is None:
