@@ -44,6 +44,27 @@ def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None
     return path.with_suffix(".yaml")
 
 
+ROBOT_SPECIFIC = ("joint_mid", "joint_half", "joint_net.initial", "depth_head.log_lambda0")
+
+
+def transfer_weights(net: HolisticNet, model: str | Path) -> tuple[int, int]:
+    """Warm-start `net` from another model (usually another robot's shipped weights): copy every tensor whose
+    name and shape match, except what belongs to the donor's robot (joint limits, initial joints, lambda_0).
+    Returns (tensors copied, tensors left as initialized)."""
+    card_path = resolve_model(model)
+    with open(card_path) as f:
+        card = yaml.safe_load(f)
+    if card["model"]["backbone"] != net.cfg.backbone or card["model"]["depth_backbone"] != net.cfg.depth_backbone:
+        raise ValueError(f"{card_path}: backbones {card['model']['backbone']}/{card['model']['depth_backbone']} "
+                         f"differ from this network's {net.cfg.backbone}/{net.cfg.depth_backbone}")
+    donor = load_file(str(card_path.parent / card["weights"]))
+    own = net.state_dict()
+    copied = {k: v.to(own[k].dtype) for k, v in donor.items()
+              if k in own and own[k].shape == v.shape and k not in ROBOT_SPECIFIC}
+    net.load_state_dict(copied, strict=False)
+    return len(copied), len(own) - len(copied)
+
+
 def load_model(model: str | Path, device: str | torch.device = "cpu") -> tuple[HolisticNet, RobotModel, dict]:
     """(network in eval mode, its robot, its card) from a shipped name or a card/weights path."""
     card_path = resolve_model(model)

@@ -21,7 +21,7 @@ from holo_pose_ros.data.generator import generate, load_generator_config
 from holo_pose_ros.data.training import RenderedViews, SampleConfig
 from holo_pose_ros.model.heads import reference_depth
 from holo_pose_ros.model.network import HolisticNet, add_kinematics, load_model_config
-from holo_pose_ros.model.weights import save_model
+from holo_pose_ros.model.weights import save_model, transfer_weights
 from holo_pose_ros.robots.kinematics import RobotModel
 from holo_pose_ros.train.losses import supervised_losses, total_loss
 
@@ -137,6 +137,10 @@ class Trainer:
         """Train every stage; returns the kept model card (rank 0)."""
         state = self.load_checkpoint() if resume else None
         if state is None:
+            if self.cfg.get("init_from"):
+                copied, fresh = transfer_weights(self.net, self.cfg["init_from"])
+                if self.rank == 0:
+                    print(f"warm start from {self.cfg['init_from']}: {copied} tensors copied, {fresh} left as initialized")
             lam = self.calibrate_depth_scale()
             if self.rank == 0:
                 print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
