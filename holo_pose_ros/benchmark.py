@@ -45,11 +45,12 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
-              threads: int | None = None, warmup: int = 5) -> dict:
+              threads: int | None = None, warmup: int = 5, backend: str = "torch") -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures."""
     if threads:
         torch.set_num_threads(threads)
-    estimator = Estimator.from_model(model, device=device, tracking=tracking, min_confidence=0.0)
+    estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
+                                     min_confidence=0.0)
     reader = DreamReader(data, estimator.robot)
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
     parents = estimator.robot.keypoint_parents
@@ -83,9 +84,22 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "stages_ms": stats, "gflops": network_gflops(estimator), "passes_per_frame": 1 if tracking else 2,
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "device": str(estimator.device) if estimator.device.type != "cpu" else f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)",
-        "backend": "torch",
+        "device": device_name(estimator.device, threads or torch.get_num_threads()),
+        "backend": backend,
     }
+
+
+def device_name(device: torch.device, threads: int) -> str:
+    """What the figures were measured on, in words: the GPU's name, or the CPU's model and thread count."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"cpu ({model}, {threads} threads)"
 
 
 def _summary(values: np.ndarray) -> dict[str, float]:

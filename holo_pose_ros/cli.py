@@ -46,7 +46,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.evaluation.report import format_report, per_frame_add, write_report
     from holo_pose_ros.evaluation.run import evaluate_folder
 
-    estimator = Estimator.from_model(args.model, device=args.device, tracking=args.tracking)
+    estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     report, results, images = evaluate_folder(estimator, reader, known_joints=args.known_joints, limit=args.limit,
                                               progress=not args.quiet, keep_images=12 if args.plots else 0)
@@ -81,6 +81,7 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
     summary = bag_eval(args.bag, args.model, args.out, image_topic=args.image_topic,
                        camera_info_topic=args.info_topic, device=args.device, min_confidence=args.min_confidence,
                        tracking=args.tracking, storage=args.storage, use_rectified_p=args.use_rectified_p,
+                       backend=args.backend,
                        limit=args.limit, progress=not args.quiet)
     print(f"{summary.n_images} images: {summary.n_found} found, {summary.n_not_found} not found, "
           f"{summary.n_skipped} skipped; estimates: {summary.out}")
@@ -98,11 +99,22 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from holo_pose_ros.benchmark import benchmark, format_benchmark
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
-                       threads=args.threads)
+                       threads=args.threads, backend=args.backend)
     print(format_benchmark(result))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
         print(f"json: {args.json}")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from holo_pose_ros.model.onnx_runtime import cached_export, export_onnx
+    from holo_pose_ros.model.weights import load_model, resolve_model
+
+    net, _, _ = load_model(args.model)
+    path = export_onnx(net, args.out) if args.out else cached_export(net, resolve_model(args.model))
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, opset 18, dynamic batch; inputs image (B, 3, "
+          f"{net.cfg.input_size}, {net.cfg.input_size}) in [0, 1] and K_crop (B, 3, 3))")
     return 0
 
 
@@ -149,6 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--limit", type=int, default=None, help="only the first N frames")
     e.add_argument("--units", default="auto", choices=["auto", "m", "cm"], help="3D units of the files")
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    e.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.set_defaults(func=_cmd_evaluate)
 
@@ -180,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"], help="storage of the output bag")
     b.add_argument("--limit", type=int, default=None, help="only the first N images")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    b.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_cmd_bag_eval)
 
@@ -188,10 +202,17 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--data", required=True, help="DREAM folder of frames to estimate (e.g. holo-pose generate)")
     m.add_argument("--frames", type=int, default=100, help="timed frames (after 5 untimed warm-up frames)")
     m.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
+    m.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")
     m.set_defaults(func=_cmd_benchmark)
+
+    x = sub.add_parser("export", help="export a model's network to ONNX (the onnxruntime backend's graph)")
+    x.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    x.add_argument("--format", default="onnx", choices=["onnx"], help="export format")
+    x.add_argument("--out", default=None, help="ONNX path (default: the cache the onnxruntime backend reads)")
+    x.set_defaults(func=_cmd_export)
     return parser
 
 

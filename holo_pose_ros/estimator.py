@@ -6,6 +6,7 @@ box feeds a second, accurate pass. Camera frame OpenCV; metres, radians, pixels.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from holo_pose_ros.geometry.crop import crop_affine, crop_image, full_image_box
 from holo_pose_ros.model.network import HolisticNet, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
+BACKENDS = ("torch", "onnxruntime")
 CROP_MARGIN = 0.3  # the crop recipe shared with training (data/training.py)
 
 
@@ -45,21 +47,34 @@ class Estimator:
     network pass a frame) and re-localizes when the confidence drops below `min_confidence`."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
-                 min_confidence: float = 0.5, tracking: bool = False):
+                 min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
+                 backend: str = "torch"):
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
+        self.network = network or self.net  # what runs a pass: the torch module, or an OnnxNetwork standing in
+        self.backend = backend
         self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
         self.size = net.cfg.input_size
         self.min_confidence, self.tracking = min_confidence, tracking
         self._previous: Estimate | None = None
 
     @classmethod
-    def from_model(cls, model: str | Path, device: str = "cpu", **kwargs) -> "Estimator":
-        """Load a shipped model by name ('panda') or a model card / weights path."""
-        from holo_pose_ros.model.weights import load_model
+    def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
+                   **kwargs) -> "Estimator":
+        """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
+        network's ONNX export (made once, cached) with `threads` intra-op threads."""
+        from holo_pose_ros.model.weights import load_model, resolve_model
 
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, _ = load_model(model, device)
-        return cls(net, robot, device, **kwargs)
+        network = None
+        if backend == "onnxruntime":
+            from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
+
+            network = OnnxNetwork(cached_export(net, resolve_model(model)), device, threads)
+            net.to(device)
+        return cls(net, robot, device, network=network, backend=backend, **kwargs)
 
     def reset(self) -> None:
         """Forget the tracked state (e.g. when the stream jumps)."""
@@ -73,7 +88,7 @@ class Estimator:
         crop = torch.from_numpy(crop_image(image, box, self.size)).to(self.device)
         x = crop.permute(2, 0, 1)[None].float() / 255.0
         t1 = time.perf_counter()
-        out = self.net(x, torch.from_numpy(K_crop[None]).float().to(self.device))
+        out = self.network(x, torch.from_numpy(K_crop[None]).float().to(self.device))
         t2 = time.perf_counter()
         timings["crop"] = timings.get("crop", 0.0) + (t1 - t0) * 1e3
         timings["network"] = timings.get("network", 0.0) + (t2 - t1) * 1e3
@@ -85,6 +100,7 @@ class Estimator:
         t0 = time.perf_counter()
         if known_joints is not None:
             out["joints"] = torch.as_tensor(known_joints, dtype=out["joints"].dtype, device=self.device).reshape(1, -1)
+        out = {k: v.to(self.device) for k, v in out.items()}
         result = {k: v[0].detach().cpu().double().numpy() for k, v in add_kinematics(self.robot, out).items()}
         timings["kinematics"] = (time.perf_counter() - t0) * 1e3
         return result

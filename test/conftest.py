@@ -1,7 +1,10 @@
 """Test-wide ROS 2 environment, set before any rclpy.init: discovery stays on this machine and Fast DDS uses the
 package's shared-memory transport profile (the one the README recommends)."""
 
+import atexit
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 _PROFILE = str(Path(__file__).resolve().parent.parent / "config" / "fastdds_shm.xml")
@@ -9,6 +12,9 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_LOCALHOST_ONLY", None)  # it would override the discovery range (Jazzy)
 os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = _PROFILE
 os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = _PROFILE
+# ONNX exports (the onnxruntime backend's cache) go to a fresh folder, shared by the session and its subprocesses
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="holo_pose_test_cache_")
+atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], True)
 
 import pytest  # noqa: E402
 

@@ -155,7 +155,8 @@ def test_outputs_carry_the_image_header_and_match_the_core(graphs, card, frame):
         assert all(header_of(m) == stamp for m in g.received[name]), name
     assert all(marker.header == stamp for marker in g.received["markers"][0].markers)
     robot = g.node.estimator.robot
-    reference = Estimator.from_model(card, "cpu", min_confidence=0.0).estimate(image, K)
+    assert g.node.estimator.backend == "onnxruntime"  # config/estimator.yaml's default
+    reference = Estimator.from_model(card, "cpu", backend="onnxruntime", min_confidence=0.0).estimate(image, K)
     joints = g.received["joint_states"][0]
     assert list(joints.name) == robot.joint_names
     np.testing.assert_allclose(joints.position, reference.joints, atol=1e-4)

@@ -94,8 +94,7 @@ class HolisticNet(nn.Module):
         root = torch.zeros_like(kp["dz"])
         root[:, self.root_index] = 1.0
         dz = kp["dz"] * (1.0 - root)                      # the root keypoint sits at depth d exactly
-        rays = torch.cat([kp["uv"], torch.ones_like(kp["uv"][..., :1])], -1) @ torch.linalg.inv(K_crop).transpose(1, 2)
-        keypoints_reg = rays * (depth[:, None] + dz)[..., None]
+        keypoints_reg = pixel_rays(kp["uv"], K_crop) * (depth[:, None] + dz)[..., None]
         joints_norm = self.joint_net(pooled)
         r6 = self.rotation_net(pooled)
         return {
@@ -104,6 +103,16 @@ class HolisticNet(nn.Module):
             "joints_norm": joints_norm, "joints": self.joint_mid + self.joint_half * joints_norm,
             "rot6d": r6, "R": rot6d_to_matrix(r6), "presence_logit": self.presence(pooled).squeeze(-1),
         }
+
+
+def pixel_rays(uv: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """K^-1 [u, v, 1]: (B, N, 2) pixels and (B, 3, 3) upper-triangular intrinsics (skew allowed) -> (B, N, 3) rays
+    with z = 1. Written out rather than with linalg.inv, which ONNX has no operator for."""
+    fx, fy, skew = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 1, None]
+    cx, cy = K[:, 0, 2, None], K[:, 1, 2, None]
+    y = (uv[..., 1] - cy) / fy
+    x = (uv[..., 0] - cx - skew * y) / fx
+    return torch.stack([x, y, torch.ones_like(x)], -1)
 
 
 def add_kinematics(robot: RobotModel, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -47,6 +47,9 @@ PARAMETERS: ParameterSpecs = {
     "robot": ("Robot YAML name (config/robots/<robot>.yaml); must be the model's robot.", True, {}),
     "model": ("Shipped model name (e.g. 'panda') or path of a model card (.yaml) or weights (.safetensors).", True, {}),
     "device": ("auto | cpu | cuda | cuda:N. CUDA asked for but unavailable: CPU, with a warning.", True, {}),
+    "backend": ("torch | onnxruntime: what runs the network (onnxruntime: exported once, cached).", True, {}),
+    "threads": ("CPU threads of the network (0: the backend's default).", True,
+                dict(integer_range=[IntegerRange(from_value=0, to_value=256)])),
     "image_topic": ("Input sensor_msgs/Image topic (rgb8, bgr8, rgba8, bgra8 or mono8); relative, remappable.", True, {}),
     "camera_info_topic": ("Input sensor_msgs/CameraInfo topic; the latest valid one is used.", True, {}),
     "use_rectified_p": ("Take K from CameraInfo.p (rectified images) instead of CameraInfo.k.", True, {}),
@@ -134,8 +137,8 @@ class EstimatorNode(Node):
         device, warning = resolve_device(p["device"])
         if warning:
             self.get_logger().warning(warning)
-        self.estimator = Estimator.from_model(p["model"], device, tracking=p["tracking"],
-                                              min_confidence=p["min_confidence"])
+        self.estimator = Estimator.from_model(p["model"], device, backend=p["backend"], threads=p["threads"] or None,
+                                              tracking=p["tracking"], min_confidence=p["min_confidence"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
             raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")

@@ -1,0 +1,104 @@
+"""The network as an ONNX graph, run by ONNX Runtime: export (torch's dynamo exporter, dynamic batch), a cache of
+exported models keyed by the weights' hash, and `OnnxNetwork`, a drop-in for HolisticNet's forward (same inputs,
+same named outputs as torch tensors). Forward kinematics stays in torch (pytorch-kinematics), outside the graph."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from holo_pose_ros import __version__
+from holo_pose_ros.model.network import HolisticNet
+
+LOG = logging.getLogger(__name__)
+OPSET = 18
+INPUTS = ("image", "K_crop")
+
+
+def output_names(net: HolisticNet) -> list[str]:
+    """The forward's output keys, in order (they name the graph's outputs)."""
+    S = net.cfg.input_size
+    with torch.inference_mode():
+        return list(net(torch.zeros(1, 3, S, S), _example_K(S)).keys())
+
+
+def _example_K(size: int, batch: int = 1) -> torch.Tensor:
+    return torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]]).repeat(batch, 1, 1)
+
+
+def export_onnx(net: HolisticNet, path: str | Path) -> Path:
+    """Write `net` (on the CPU, eval mode) as one self-contained ONNX file with a dynamic batch dimension."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    net = net.cpu().eval()
+    S = net.cfg.input_size
+    example = (torch.rand(2, 3, S, S), _example_K(S, 2))
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    tmp = path.with_name(path.name + ".tmp")
+    with warnings.catch_warnings():  # the exporter's own deprecation chatter, not the user's concern
+        warnings.filterwarnings("ignore", category=FutureWarning)
+        warnings.filterwarnings("ignore", message=".*axis name.*")
+        torch.onnx.export(net, example, str(tmp), dynamo=True, opset_version=OPSET, input_names=list(INPUTS),
+                          output_names=output_names(net), dynamic_shapes={"image": {0: batch}, "K_crop": {0: batch}},
+                          external_data=False, verbose=False)
+    os.replace(tmp, path)  # a crash mid-export never leaves a truncated model in the cache
+    return path
+
+
+def cache_dir() -> Path:
+    """$XDG_CACHE_HOME/holo_pose_ros/onnx (default ~/.cache/...)."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "holo_pose_ros" / "onnx"
+
+
+def cached_export(net: HolisticNet, card_path: Path) -> Path:
+    """The ONNX export of the model behind `card_path`, made once and reused: the file name carries the hash of the
+    weights and the package version, so new weights or a new network code never run a stale graph."""
+    card_path = Path(card_path)
+    digest = hashlib.sha256(card_path.read_bytes())
+    import yaml
+
+    card = yaml.safe_load(card_path.read_text())
+    digest.update((card_path.parent / card["weights"]).read_bytes())
+    path = cache_dir() / f"{card['robot']}-{card['model']['name']}-{__version__}-{digest.hexdigest()[:16]}.onnx"
+    if not path.is_file():
+        LOG.info("exporting %s to ONNX (once): %s", card_path, path)
+        export_onnx(net, path)
+    return path
+
+
+class OnnxNetwork:
+    """An ONNX Runtime session with HolisticNet's call signature: (image (B, 3, S, S) in [0, 1], K_crop (B, 3, 3))
+    -> dict of named torch tensors on the CPU. All graph optimizations on; `threads` intra-op threads (default:
+    ONNX Runtime's, one per physical core)."""
+
+    def __init__(self, path: str | Path, device: str | torch.device = "cpu", threads: int | None = None):
+        import onnxruntime as ort
+
+        device = torch.device(device)
+        options = ort.SessionOptions()
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.inter_op_num_threads = 1
+        if threads:
+            options.intra_op_num_threads = threads
+        if device.type == "cuda":
+            if "CUDAExecutionProvider" not in ort.get_available_providers():
+                raise ValueError("this onnxruntime has no CUDA provider (install onnxruntime-gpu), or use the torch "
+                                 "backend on CUDA")
+            providers = [("CUDAExecutionProvider", {"device_id": device.index or 0}), "CPUExecutionProvider"]
+        else:
+            providers = ["CPUExecutionProvider"]
+        self.path = Path(path)
+        self.session = ort.InferenceSession(str(self.path), options, providers=providers)
+        self.names = [o.name for o in self.session.get_outputs()]
+
+    def __call__(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
+        feeds = {"image": np.ascontiguousarray(image.detach().cpu().numpy(), dtype=np.float32),
+                 "K_crop": np.ascontiguousarray(K_crop.detach().cpu().numpy(), dtype=np.float32)}
+        return {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feeds))}

@@ -1,0 +1,86 @@
+"""The onnxruntime backend: the exported graph computes what the torch network computes, on real rendered crops and
+through the whole two-pass estimator with the shipped weights; exports are cached by the weights' hash; the CLI
+writes a valid ONNX file. Tolerances: network outputs within 1e-3 (pixels, metres, radians, logits); estimates
+within 2 mm (keypoints) and 0.01 rad (joints), the two passes amplifying float differences through the crop."""
+
+import os
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from holo_pose_ros.cli import main
+from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.data.generator import generate
+from holo_pose_ros.data.training import RenderedViews, SampleConfig
+from holo_pose_ros.data.generator import load_generator_config
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cache_dir, cached_export
+from holo_pose_ros.model.weights import load_model
+from small_model import save_small_model
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("onnx_frames")
+    generate("panda", 4, folder, seed=4242, workers=1, width=320, height=240, progress=False)
+    return folder
+
+
+def test_exported_graph_matches_torch_on_rendered_crops(small_model_card):
+    net, _, _ = load_model(small_model_card)
+    views = RenderedViews("panda", SampleConfig(net.cfg.input_size), load_generator_config("randomized"), seed=7, length=3)
+    batch = [views[i] for i in range(3)]
+    image = torch.stack([b["image"] for b in batch])
+    K = torch.stack([b["K_crop"] for b in batch])
+    session = OnnxNetwork(cached_export(net, small_model_card))
+    with torch.inference_mode():
+        expected = net(image, K)
+    got = session(image, K)  # batch of 3: the batch dimension is dynamic
+    assert set(got) == set(expected)
+    for name, value in expected.items():
+        assert got[name].shape == value.shape, name
+        np.testing.assert_allclose(got[name].numpy(), value.numpy(), atol=1e-3, rtol=1e-4, err_msg=name)
+
+
+def test_shipped_model_estimates_agree_across_backends(frames):
+    torch_estimator = Estimator.from_model("panda")
+    ort_estimator = Estimator.from_model("panda", backend="onnxruntime")
+    assert ort_estimator.backend == "onnxruntime"
+    reader = DreamReader(frames, "panda")
+    for frame in reader:
+        image = reader.load_image(frame)
+        a, b = torch_estimator.estimate(image, frame.K), ort_estimator.estimate(image, frame.K)
+        assert a.found == b.found
+        if a.found:
+            np.testing.assert_allclose(b.keypoints_3d, a.keypoints_3d, atol=2e-3)
+            np.testing.assert_allclose(b.joints, a.joints, atol=1e-2)
+            np.testing.assert_allclose(b.keypoints_2d, a.keypoints_2d, atol=1.0)
+
+
+def test_exports_are_cached_by_weights(tmp_path, small_model_card):
+    net, _, _ = load_model(small_model_card)
+    first = cached_export(net, small_model_card)
+    stamp = first.stat().st_mtime_ns
+    assert first.parent == cache_dir() and cached_export(net, small_model_card) == first
+    assert first.stat().st_mtime_ns == stamp  # reused, not exported again
+    other_card = save_small_model(tmp_path, seed=1)  # other weights, same configuration
+    other, _, _ = load_model(other_card)
+    assert cached_export(other, other_card) != first
+
+
+def test_export_command_writes_a_valid_onnx_file(tmp_path, small_model_card, capsys):
+    out = tmp_path / "small.onnx"
+    assert main(["export", "--model", str(small_model_card), "--format", "onnx", "--out", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    model = onnx.load(str(out))
+    onnx.checker.check_model(model)
+    assert [i.name for i in model.graph.input] == ["image", "K_crop"]
+    assert "joints" in [o.name for o in model.graph.output]
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def test_unknown_backend_is_refused(small_model_card):
+    with pytest.raises(ValueError, match="unknown backend 'tensorrt'"):
+        Estimator.from_model(small_model_card, backend="tensorrt")
