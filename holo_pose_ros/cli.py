@@ -101,6 +101,12 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
                        threads=args.threads, backend=args.backend)
     print(format_benchmark(result))
+    if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
+        from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
+
+        result["node"] = node_latency(args.model, args.data, frames=args.frames, rate_hz=args.node_rate,
+                                      backend=args.backend, tracking=args.tracking, threads=args.threads or 0)
+        print(format_node_latency(result["node"]))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
         print(f"json: {args.json}")
@@ -206,6 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")
+    m.add_argument("--node", action="store_true", help="also time the estimator node in a real ROS 2 graph (image "
+                                                      "published -> JointState received)")
+    m.add_argument("--node-rate", type=float, default=30.0, help="camera rate of the node figure, frames/s")
     m.set_defaults(func=_cmd_benchmark)
 
     x = sub.add_parser("export", help="export a model's network to ONNX (the onnxruntime backend's graph)")

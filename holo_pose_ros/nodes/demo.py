@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -21,7 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
 from holo_pose_ros.bags import ESTIMATOR_NS
-from holo_pose_ros.resources import config_dir
+from holo_pose_ros.nodes.processes import private_graph_env, start_node, stop_nodes
 from msg_adapters import image_to_rgb, stamp_ns
 
 
@@ -53,14 +51,6 @@ class Watcher(Node):
                 self.inference_ms.append(float(values["inference_ms"]))
 
 
-def _node(module: str, params: dict, log: Path, env: dict) -> subprocess.Popen:
-    """Start `python -m holo_pose_ros.nodes.<module> --ros-args -p k:=v ...` as its own process."""
-    args = [sys.executable, "-m", f"holo_pose_ros.nodes.{module}", "--ros-args"]
-    for key, value in params.items():
-        args += ["-p", f"{key}:={json.dumps(value) if isinstance(value, str) else value}"]
-    return subprocess.Popen(args, stdout=open(log, "w"), stderr=subprocess.STDOUT, env=env)
-
-
 def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_s: float) -> int:
     """Generate the sample (if needed), run the graph until the evaluation node reports, print the summary."""
     from holo_pose_ros.data.generator import generate
@@ -69,17 +59,12 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
     logs.mkdir(parents=True, exist_ok=True)
     if not (data / f"{frames - 1:06d}.json").exists():
         generate(robot, frames, data, seed=seed, progress=True)
-    profile = str(config_dir() / "fastdds_shm.xml")
-    env = {**os.environ, "ROS_DOMAIN_ID": str(150 + os.getpid() % 80), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-           "FASTRTPS_DEFAULT_PROFILES_FILE": profile, "FASTDDS_DEFAULT_PROFILES_FILE": profile}
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
-                                           "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")})
+    env = private_graph_env()
     report_path = out / "report.json"
     report_path.unlink(missing_ok=True)
     processes = {
-        "estimator": _node("estimator_node", {"robot": robot, "model": model}, logs / "estimator.log", env),
-        "evaluation": _node("evaluation_node", {"robot": robot, "report_path": str(report_path.resolve())},
+        "estimator": start_node("estimator_node", {"robot": robot, "model": model}, logs / "estimator.log", env),
+        "evaluation": start_node("evaluation_node", {"robot": robot, "report_path": str(report_path.resolve())},
                             logs / "evaluation.log", env),
     }
     rclpy.init()
@@ -92,7 +77,7 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
         rclpy.spin_once(watcher, timeout_sec=0.1)
     for _ in range(10):  # discovery is not instantaneous in both directions
         rclpy.spin_once(watcher, timeout_sec=0.1)
-    processes["replay"] = _node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot, "lockstep": True,
+    processes["replay"] = start_node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot, "lockstep": True,
                                                       "exit_when_done": True, "lockstep_timeout_s": 60.0},
                                 logs / "replay.log", env)
     print(f"ROS 2 graph up (domain {env['ROS_DOMAIN_ID']}): replay -> estimator -> evaluation; logs in {logs}")
@@ -113,14 +98,7 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
     finally:
         watcher.destroy_node()
         rclpy.try_shutdown()
-        for p in processes.values():
-            if p.poll() is None:
-                p.terminate()
-        for p in processes.values():
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_nodes(processes)
     if code or not report_path.exists():
         print((logs / "evaluation.log").read_text()[-2000:], file=sys.stderr)
         return code or 1
