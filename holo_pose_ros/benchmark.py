@@ -19,6 +19,7 @@ from holo_pose_ros.estimator import Estimator
 from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers,
                           to_pose_stamped, to_transform_stamped)
 
+TRACKING_HOLD = 10  # frames per scene when tracking (the generator's frames are independent scenes)
 STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "messages", "total")
 
 
@@ -46,7 +47,8 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
               threads: int | None = None, warmup: int = 5, backend: str = "torch") -> dict:
-    """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures."""
+    """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
+    Tracking needs a stream: each frame is then held for TRACKING_HOLD frames (a camera watching a slow arm)."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
@@ -55,8 +57,9 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
     parents = estimator.robot.keypoint_parents
     samples = {stage: [] for stage in STAGES}
+    hold = TRACKING_HOLD if tracking else 1
     for i in range(warmup + frames):
-        msg, K = pool[i % len(pool)]
+        msg, K = pool[(i // hold) % len(pool)]
         t0 = time.perf_counter()
         image = image_to_rgb(msg)
         t1 = time.perf_counter()

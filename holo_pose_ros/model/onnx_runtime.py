@@ -4,6 +4,7 @@ same named outputs as torch tensors). Forward kinematics stays in torch (pytorch
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -41,14 +42,28 @@ def export_onnx(net: HolisticNet, path: str | Path) -> Path:
     example = (torch.rand(2, 3, S, S), _example_K(S, 2))
     batch = torch.export.Dim("batch", min=1, max=1024)
     tmp = path.with_name(path.name + ".tmp")
-    with warnings.catch_warnings():  # the exporter's own deprecation chatter, not the user's concern
-        warnings.filterwarnings("ignore", category=FutureWarning)
+    with warnings.catch_warnings(), _quiet_loggers("torch.onnx", "torch.export", "onnx_ir", "onnxscript"):
+        warnings.filterwarnings("ignore", category=FutureWarning)  # the exporter's own chatter, not the user's concern
         warnings.filterwarnings("ignore", message=".*axis name.*")
         torch.onnx.export(net, example, str(tmp), dynamo=True, opset_version=OPSET, input_names=list(INPUTS),
                           output_names=output_names(net), dynamic_shapes={"image": {0: batch}, "K_crop": {0: batch}},
                           external_data=False, verbose=False)
     os.replace(tmp, path)  # a crash mid-export never leaves a truncated model in the cache
     return path
+
+
+@contextlib.contextmanager
+def _quiet_loggers(*names: str):
+    """Raise these libraries' loggers to ERROR for the duration (the exporter logs every pass at INFO/WARNING)."""
+    loggers = [logging.getLogger(name) for name in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
 
 
 def cache_dir() -> Path:

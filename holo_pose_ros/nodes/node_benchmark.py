@@ -16,6 +16,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Header
 
 from holo_pose_ros.bags import ESTIMATOR_NS
+from holo_pose_ros.benchmark import TRACKING_HOLD
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.nodes.processes import private_graph_env, start_node, stop_nodes
 from msg_adapters import camera_info_from_K, rgb_to_image, stamp_ns
@@ -24,9 +25,9 @@ from msg_adapters import camera_info_from_K, rgb_to_image, stamp_ns
 class LatencyProbe(Node):
     """Publishes the pool of frames on a timer with unique stamps; records publish and answer times (monotonic s)."""
 
-    def __init__(self, frames: list[tuple[np.ndarray, np.ndarray]], frame_id: str = "camera"):
+    def __init__(self, frames: list[tuple[np.ndarray, np.ndarray]], hold: int = 1, frame_id: str = "camera"):
         super().__init__("holo_pose_latency_probe")
-        self.pool = frames
+        self.pool, self.hold = frames, hold
         self.frame_id = frame_id
         self.image_pub = self.create_publisher(Image, "image", 10)
         self.info_pub = self.create_publisher(CameraInfo, "camera_info", 10)
@@ -37,7 +38,7 @@ class LatencyProbe(Node):
 
     def send(self) -> int:
         """Publish the next frame (stamp = count + 1 seconds); returns its stamp in nanoseconds."""
-        image, K = self.pool[self.count % len(self.pool)]
+        image, K = self.pool[(self.count // self.hold) % len(self.pool)]
         self.count += 1
         header = Header(stamp=Time(sec=self.count), frame_id=self.frame_id)
         info = camera_info_from_K(K, image.shape[1], image.shape[0], header)
@@ -66,7 +67,7 @@ def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float
               "min_confidence": 0.0, "publish_annotated": False, "publish_tf": False}
     process = start_node("estimator_node", params, log, env)
     rclpy.init()
-    probe = LatencyProbe(pool)
+    probe = LatencyProbe(pool, hold=TRACKING_HOLD if tracking else 1)
     try:
         # warm-up: one frame at a time until the node answers (it loads the model, maybe exports it), then 5 more
         deadline, warm = time.monotonic() + startup_timeout_s, 0
