@@ -34,8 +34,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = load_train_config(args.config)
     if args.out:
         cfg["out"] = args.out
-    kept = Trainer(cfg, device=args.device, progress=not args.quiet).run(resume=args.resume)
-    print(f"kept model: {kept}" if kept else "no model kept (no validation ran)")
+    trainer = Trainer(cfg, device=args.device, progress=not args.quiet)
+    kept = trainer.run(resume=args.resume)
+    if trainer.rank == 0:  # under torchrun, rank 0 alone validates and keeps
+        print(f"kept model: {kept}" if kept else "no model kept (no validation ran)")
     return 0
 
 

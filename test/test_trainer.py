@@ -2,7 +2,13 @@
 kept model loads into the estimator, and a resumed run continues where it stopped."""
 
 import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
 
+import pytest
+import torch
 import yaml
 
 from holo_pose_ros.estimator import Estimator
@@ -46,3 +52,46 @@ def test_training_run_logs_checkpoints_keeps_and_resumes(tmp_path):
     Trainer(cfg, device="cpu", progress=False).run(resume=True)
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert [int(r["step"]) for r in rows] == [2, 4, 6, 8]
+
+
+def test_warm_start_copies_shared_layers_but_not_the_donor_robot(tmp_path, small_model_card):
+    from small_model import SMALL
+
+    from holo_pose_ros.model.network import HolisticNet
+    from holo_pose_ros.model.weights import load_model, transfer_weights
+    from holo_pose_ros.robots.kinematics import RobotModel
+
+    donor, _, _ = load_model(small_model_card)
+    kuka = HolisticNet(load_model_config(SMALL), RobotModel("kuka"))
+    before = {k: v.clone() for k, v in kuka.state_dict().items()}
+    copied, fresh = transfer_weights(kuka, small_model_card)
+    state, donor_state = kuka.state_dict(), donor.state_dict()
+    assert copied > 100 and fresh > 0
+    name = next(k for k in state if k.startswith("backbone.") and k.endswith("weight"))
+    assert torch.equal(state[name], donor_state[name])                       # shared trunk: copied
+    assert torch.equal(state["keypoint_head.out.weight"], before["keypoint_head.out.weight"])  # 8 vs 7 keypoints
+    for key in ("joint_mid", "joint_half", "depth_head.log_lambda0"):        # the Kuka's own
+        assert torch.equal(state[key], before[key]), key
+
+    other = HolisticNet(load_model_config({**SMALL, "depth_backbone": "efficientnet_lite0", "pretrained": False,
+                                           "depth_pretrained": False}), RobotModel("kuka"))
+    with pytest.raises(ValueError, match="backbones"):
+        transfer_weights(other, small_model_card)
+
+
+def test_two_process_ddp_run_with_torchrun(tmp_path):
+    """The multi-GPU path (torchrun, DDP) on two CPU processes with the gloo backend: both ranks train, rank 0
+    alone validates, logs and keeps the model."""
+    cfg = tiny_config(tmp_path / "ddp")
+    cfg["stages"] = cfg["stages"][1:]
+    cfg["stages"][0]["steps"] = 2
+    path = tmp_path / "ddp.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    torchrun = Path(sys.executable).with_name("torchrun")
+    result = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "holo_pose_ros.cli",
+                             "train", "--config", str(path), "--device", "cpu", "--quiet"],
+                            capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = list(csv.DictReader(open(tmp_path / "ddp" / "log.csv")))
+    assert [int(r["step"]) for r in rows] == [2]                              # one writer
+    assert (tmp_path / "ddp" / "best.yaml").exists() and result.stdout.count("kept model:") == 1

@@ -188,6 +188,7 @@ class Trainer:
             state = None
         bar.close()
         if self.distributed:
+            dist.barrier()  # rank 0 may still be validating the last interval
             dist.destroy_process_group()
         return kept
 
