@@ -87,6 +87,13 @@ def cached_export(net: HolisticNet, card_path: Path) -> Path:
     return path
 
 
+def has_cuda_provider() -> bool:
+    """Whether the installed onnxruntime can run on a GPU (the onnxruntime-gpu build)."""
+    import onnxruntime as ort
+
+    return "CUDAExecutionProvider" in ort.get_available_providers()
+
+
 class OnnxNetwork:
     """An ONNX Runtime session with HolisticNet's call signature: (image (B, 3, S, S) in [0, 1], K_crop (B, 3, 3))
     -> dict of named torch tensors on the CPU. All graph optimizations on; `threads` intra-op threads (default:
@@ -103,7 +110,7 @@ class OnnxNetwork:
         if threads:
             options.intra_op_num_threads = threads
         if device.type == "cuda":
-            if "CUDAExecutionProvider" not in ort.get_available_providers():
+            if not has_cuda_provider():
                 raise ValueError("this onnxruntime has no CUDA provider (install onnxruntime-gpu), or use the torch "
                                  "backend on CUDA")
             providers = [("CUDAExecutionProvider", {"device_id": device.index or 0}), "CPUExecutionProvider"]

@@ -137,7 +137,20 @@ class EstimatorNode(Node):
         device, warning = resolve_device(p["device"])
         if warning:
             self.get_logger().warning(warning)
-        self.estimator = Estimator.from_model(p["model"], device, backend=p["backend"], threads=p["threads"] or None,
+        backend = p["backend"]
+        if backend == "onnxruntime" and device.startswith("cuda"):
+            from holo_pose_ros.model.onnx_runtime import has_cuda_provider
+
+            if not has_cuda_provider():
+                self.get_logger().warning("this onnxruntime has no CUDA provider: the network runs in torch on "
+                                          f"{device} (install onnxruntime-gpu for ONNX Runtime on the GPU)")
+                backend = "torch"
+        if backend == "onnxruntime":
+            from holo_pose_ros.model.onnx_runtime import cache_dir
+
+            self.get_logger().info(f"preparing the ONNX Runtime graph: exported once per weights file (about 20 s), "
+                                   f"then reused from {cache_dir()}")
+        self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
                                               tracking=p["tracking"], min_confidence=p["min_confidence"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
@@ -181,7 +194,7 @@ class EstimatorNode(Node):
         self._worker = threading.Thread(target=self._work, name="holo_pose_estimator_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"robot '{robot.name}', model '{self.model}' on {device}; listening on {self._image_sub.topic_name} and "
+            f"robot '{robot.name}', model '{self.model}' on {device} ({self.estimator.backend}); listening on {self._image_sub.topic_name} and "
             f"{self._info_sub.topic_name} (best effort, depth 1); publishing under {self.get_fully_qualified_name()}/")
 
     # -- parameters and logging ------------------------------------------------------------------------------
