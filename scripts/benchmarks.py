@@ -103,6 +103,47 @@ def _median_ms(fn, runs: int, warmup: int = 5) -> float:
     return float(np.median(times))
 
 
+def plot(rows: list[dict], candidates: list[dict], path: Path) -> None:
+    """Left: end-to-end latency (p50 bar, p95 tick) of every shipped configuration against the 33 ms of a 30 Hz
+    camera. Right: network-only latency of the candidates against their GFLOPs, per backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2 if candidates else 1, figsize=(13 if candidates else 7, 4.5), squeeze=False)
+    ax = axes[0][0]
+    labels = [f"{r['model']} {r['bench']['backend']}\n{'tracking' if r['bench']['tracking'] else 'loc+crop'}" for r in rows]
+    p50 = [r["bench"]["latency_ms_p50"] for r in rows]
+    p95 = [r["bench"]["latency_ms_p95"] for r in rows]
+    ax.bar(range(len(rows)), p50, color=["tab:orange" if r["bench"]["backend"] == "onnxruntime" else "tab:blue"
+                                         for r in rows], label="p50")
+    ax.scatter(range(len(rows)), p95, marker="_", s=400, color="black", label="p95", zorder=3)
+    ax.axhline(1e3 / 30, color="gray", linestyle="--", label="30 Hz camera (33 ms)")
+    ax.set_xticks(range(len(rows)), labels, fontsize=7, rotation=60, ha="right")
+    ax.set_ylabel("end-to-end latency, ms")
+    ax.set_title("Shipped models: Image in -> all messages out")
+    ax.legend(fontsize=8)
+    if candidates:
+        ax = axes[0][1]
+        for backend, marker in (("torch", "o"), ("onnxruntime", "s")):
+            ax.scatter([c["gflops"] for c in candidates], [c["ms"][backend] for c in candidates], marker=marker,
+                       label=backend)
+        for c in candidates:
+            ax.annotate(c["label"].split(" (")[0], (c["gflops"], c["ms"]["onnxruntime"]), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("GFLOPs per pass")
+        ax.set_ylabel("network latency, ms (batch 1)")
+        ax.set_title("lite candidates")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], device: str, minutes: float) -> None:
     lines = [
         "# Benchmarks",
@@ -111,6 +152,8 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         f"`config/benchmarks.yaml` ({minutes:.0f} min); do not edit by hand. holo_pose_ros {__version__}, torch "
         f"{torch.__version__}, onnxruntime {onnxruntime.__version__}, {datetime.date.today().isoformat()}.",
         f"Device: **{rows[0]['bench']['device'] if rows else device}**.",
+        "",
+        "![latency of the shipped configurations and of the lite candidates](docs/benchmarks.png)",
         "",
         "## Shipped models, end to end",
         "",
@@ -192,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     candidates = [] if args.skip_candidates else [
         candidate(c, cfg["candidate_runs"], work) for c in tqdm(cfg["candidates"], desc="lite candidates", unit="net")]
     (work / "all.json").write_text(json.dumps({"rows": rows, "candidates": candidates}, indent=1))
+    plot(rows, candidates, ROOT / "docs" / "benchmarks.png")
     write_page(Path(args.out), cfg, rows, candidates, device_name(torch.device(args.device), torch.get_num_threads())
                if args.device != "cpu" else "cpu", (time.monotonic() - start) / 60)
     print(f"wrote {args.out} (raw figures: {work / 'all.json'})")
