@@ -71,6 +71,7 @@ class Trainer:
             shift_sigma=views.get("shift_sigma", 0.08), scale_range=tuple(views.get("scale_range", (0.85, 1.3))))
         self.generator_cfg = load_generator_config(cfg["generator"])
         self.step, self.stage_index, self.best_auc = 0, 0, -1.0
+        self.best_add_mm = math.inf  # breaks ties of the AUC (early in training it is 0 for every checkpoint)
         self.total_steps = sum(s["steps"] for s in cfg["stages"])
 
     # -- data ----------------------------------------------------------------------------------------------
@@ -109,7 +110,8 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------------------------
     def save_checkpoint(self, optimizer) -> None:
         torch.save({"net": self.net.state_dict(), "optimizer": optimizer.state_dict(), "step": self.step,
-                    "stage_index": self.stage_index, "best_auc": self.best_auc}, self.out / "last.pt")
+                    "stage_index": self.stage_index, "best_auc": self.best_auc, "best_add_mm": self.best_add_mm},
+                   self.out / "last.pt")
 
     def load_checkpoint(self) -> dict | None:
         path = self.out / "last.pt"
@@ -118,6 +120,7 @@ class Trainer:
         state = torch.load(path, map_location=self.device, weights_only=True)
         self.net.load_state_dict(state["net"])
         self.step, self.stage_index, self.best_auc = state["step"], state["stage_index"], state["best_auc"]
+        self.best_add_mm = state.get("best_add_mm", math.inf)
         return state
 
     # -- the loop ------------------------------------------------------------------------------------------
@@ -207,9 +210,11 @@ class Trainer:
                 writer.writeheader()
             writer.writerow(row)
         auc = report.get("add_auc")
-        improved = auc is not None and auc > self.best_auc
+        add_mm = report.get("add_mean_mm")
+        add_mm = math.inf if add_mm is None else add_mm
+        improved = auc is not None and (auc, -add_mm) > (self.best_auc, -self.best_add_mm)
         if improved:
-            self.best_auc = auc
+            self.best_auc, self.best_add_mm = auc, add_mm
         self.save_checkpoint(optimizer)  # once, with the best AUC so far, so a resumed run keeps the right best
         if improved:
             return save_model(self.net, self.cfg["robot"], self.out / "best", {
