@@ -1,28 +1,42 @@
-"""The shipped Panda model, loaded by name as users do: it finds the robot in rendered frames it never saw and
-says "not found" on images without a robot. The bound on ADD is the regression check of the current CPU-trained
-weights (an untrained network is metres off), not the accuracy target."""
+"""The shipped models, loaded by name as users do: each finds its robot in rendered frames it never saw and says
+"not found" on images without a robot. The ADD checks compare with an untrained network of the same configuration
+on the same frames (about 15 m off, 80 px): they catch weights that do not load or a broken pipeline; they are
+not the accuracy target, which the current CPU-trained weights are far from."""
 
 import numpy as np
 import pytest
+import torch
 
 from holo_pose_ros.data.backgrounds import random_background
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.evaluation.run import evaluate_folder
+from holo_pose_ros.model.network import HolisticNet
+from holo_pose_ros.resources import weights_dir
+
+SHIPPED = sorted(p.stem for p in weights_dir().glob("*.yaml"))
 
 
-@pytest.fixture(scope="module")
-def estimator():
-    return Estimator.from_model("panda")
+def test_every_robot_has_shipped_weights():
+    assert SHIPPED == ["baxter", "kuka", "panda"]
 
 
-def test_shipped_panda_finds_the_robot_in_unseen_frames(tmp_path, estimator):
-    generate("panda", 6, tmp_path, seed=31337, workers=1, config="photo", progress=False)
-    report, results, _ = evaluate_folder(estimator, DreamReader(tmp_path, "panda"), progress=False)
+@pytest.fixture(scope="module", params=SHIPPED)
+def estimator(request):
+    return Estimator.from_model(request.param)
+
+
+def test_shipped_model_finds_its_robot_in_unseen_frames(tmp_path, estimator):
+    robot = estimator.robot.name
+    generate(robot, 6, tmp_path, seed=31337, workers=1, config="photo", progress=False)
+    report, _, _ = evaluate_folder(estimator, DreamReader(tmp_path, robot), progress=False)
+    torch.manual_seed(0)
+    untrained = Estimator(HolisticNet(estimator.net.cfg, estimator.robot), estimator.robot, min_confidence=0.0)
+    baseline, _, _ = evaluate_folder(untrained, DreamReader(tmp_path, robot), progress=False)
     assert report["n_not_found"] == 0
-    assert report["add_mean_mm"] < 350.0
-    assert report["reproj_error_px"]["median"] < 80.0
+    assert report["add_mean_mm"] < min(1000.0, 0.1 * baseline["add_mean_mm"])
+    assert report["reproj_error_px"]["median"] < 0.75 * baseline["reproj_error_px"]["median"]
 
 
 def test_images_without_a_robot_are_not_found(estimator):
