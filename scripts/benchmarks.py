@@ -116,8 +116,9 @@ def plot(rows: list[dict], candidates: list[dict], path: Path) -> None:
     labels = [f"{r['model']} {r['bench']['backend']}\n{'tracking' if r['bench']['tracking'] else 'loc+crop'}" for r in rows]
     p50 = [r["bench"]["latency_ms_p50"] for r in rows]
     p95 = [r["bench"]["latency_ms_p95"] for r in rows]
-    ax.bar(range(len(rows)), p50, color=["tab:orange" if r["bench"]["backend"] == "onnxruntime" else "tab:blue"
-                                         for r in rows], label="p50")
+    for backend, color in (("torch", "tab:blue"), ("onnxruntime", "tab:orange")):
+        index = [i for i, r in enumerate(rows) if r["bench"]["backend"] == backend]
+        ax.bar(index, [p50[i] for i in index], color=color, label=f"p50, {backend}")
     ax.scatter(range(len(rows)), p95, marker="_", s=400, color="black", label="p95", zorder=3)
     ax.axhline(1e3 / 30, color="gray", linestyle="--", label="30 Hz camera (33 ms)")
     ax.set_xticks(range(len(rows)), labels, fontsize=7, rotation=60, ha="right")
