@@ -70,7 +70,8 @@ def run_graph(data, model, report_path, min_confidence: float, timeout_s: float 
 
 @pytest.mark.parametrize("min_confidence", [0.0, 1.0], ids=["all_found", "none_found"])
 def test_live_report_equals_holo_pose_evaluate(data, model, tmp_path, min_confidence):
-    estimator = Estimator.from_model(model, min_confidence=min_confidence)
+    # the same backend as the node's default (config/estimator.yaml), so the two must agree to rounding
+    estimator = Estimator.from_model(model, backend="onnxruntime", min_confidence=min_confidence)
     expected, expected_results, _ = evaluate_folder(estimator, DreamReader(data, estimator.robot), progress=False)
 
     _, replay, evaluation = run_graph(data, model, tmp_path / "report.json", min_confidence)
