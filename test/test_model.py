@@ -52,6 +52,7 @@ def test_reference_depth_and_depth_head():
 
 
 def test_network_shapes_and_units(robot, views):
+    torch.manual_seed(0)  # the initial residuals are small but random: independent of which tests ran before
     net = HolisticNet(load_model_config(SMALL), robot).eval()
     batch = torch.stack([v["image"] for v in views[:2]]), torch.stack([v["K_crop"] for v in views[:2]])
     with torch.no_grad():
