@@ -16,6 +16,7 @@ from std_msgs.msg import Header
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.network import HolisticNet, example_inputs
 from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers,
                           to_pose_stamped, to_transform_stamped)
 
@@ -23,15 +24,13 @@ TRACKING_HOLD = 10  # frames per scene when tracking (the generator's frames are
 STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "messages", "total")
 
 
-def network_gflops(estimator: Estimator) -> float:
+def network_gflops(net: HolisticNet) -> float:
     """GFLOPs of one network pass at the model's input size (multiply-adds counted as 2 FLOPs)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    S = estimator.size
-    x = torch.rand(1, 3, S, S, device=estimator.device)
-    K = torch.tensor([[[S, 0.0, S / 2], [0.0, S, S / 2], [0.0, 0.0, 1.0]]], device=estimator.device)
+    inputs = example_inputs(net.cfg.input_size, device=next(net.parameters()).device)
     with torch.inference_mode(), FlopCounterMode(display=False) as counter:
-        estimator.net(x, K)
+        net(*inputs)
     return counter.get_total_flops() / 1e9
 
 
@@ -84,7 +83,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "input_size": estimator.size, "tracking": tracking, "frames": frames,
         "fps": float(1e3 / total.mean()), "latency_ms_p50": stats["total"]["p50"],
         "latency_ms_p95": stats["total"]["p95"], "latency_ms_max": stats["total"]["max"],
-        "stages_ms": stats, "gflops": network_gflops(estimator), "passes_per_frame": 1 if tracking else 2,
+        "stages_ms": stats, "gflops": network_gflops(estimator.net), "passes_per_frame": 1 if tracking else 2,
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),

@@ -117,10 +117,10 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from holo_pose_ros.model.onnx_runtime import cached_export, export_onnx
-    from holo_pose_ros.model.weights import load_model, resolve_model
+    from holo_pose_ros.model.weights import load_model
 
     net, _, _ = load_model(args.model)
-    path = export_onnx(net, args.out) if args.out else cached_export(net, resolve_model(args.model))
+    path = export_onnx(net, args.out) if args.out else cached_export(net, args.model)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, opset 18, dynamic batch; inputs image (B, 3, "
           f"{net.cfg.input_size}, {net.cfg.input_size}) in [0, 1] and K_crop (B, 3, 3))")
     return 0

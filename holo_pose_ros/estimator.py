@@ -63,7 +63,7 @@ class Estimator:
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
         network's ONNX export (made once, cached) with `threads` intra-op threads."""
-        from holo_pose_ros.model.weights import load_model, resolve_model
+        from holo_pose_ros.model.weights import load_model
 
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
@@ -72,8 +72,7 @@ class Estimator:
         if backend == "onnxruntime":
             from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
 
-            network = OnnxNetwork(cached_export(net, resolve_model(model)), device, threads)
-            net.to(device)
+            network = OnnxNetwork(cached_export(net, model), device, threads)
         return cls(net, robot, device, network=network, backend=backend, **kwargs)
 
     def reset(self) -> None:

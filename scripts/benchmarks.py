@@ -25,9 +25,9 @@ import yaml
 from tqdm import tqdm
 
 from holo_pose_ros import __version__
-from holo_pose_ros.benchmark import TRACKING_HOLD, device_name
+from holo_pose_ros.benchmark import TRACKING_HOLD, device_name, network_gflops
 from holo_pose_ros.data.generator import generate
-from holo_pose_ros.model.network import HolisticNet, load_model_config
+from holo_pose_ros.model.network import HolisticNet, example_inputs, load_model_config
 from holo_pose_ros.model.onnx_runtime import OnnxNetwork, export_onnx
 from holo_pose_ros.resources import config_dir, weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
@@ -72,23 +72,19 @@ def accuracy(model: str, data: Path, backend: str, device: str, work: Path) -> d
 def candidate(entry: dict, runs: int, work: Path) -> dict:
     """Network-only latency (median of `runs` batch-1 passes), GFLOPs and parameters of one configuration (Panda
     heads; pretrained weights are irrelevant to speed, so none are loaded)."""
-    from torch.utils.flop_counter import FlopCounterMode
-
     base = load_model_config(entry.get("base", "lite")).to_dict()
     fields = {k: v for k, v in entry.items() if k not in ("label", "base")}
     cfg = load_model_config({**base, **fields, "pretrained": False, "depth_pretrained": False})
     net = HolisticNet(cfg, RobotModel("panda")).eval()
-    S = cfg.input_size
-    x, K = torch.rand(1, 3, S, S), torch.tensor([[[S, 0.0, S / 2], [0.0, S, S / 2], [0.0, 0.0, 1.0]]])
-    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
-        net(x, K)
+    x, K = example_inputs(cfg.input_size)
     timings = {}
     with torch.inference_mode():
         timings["torch"] = _median_ms(lambda: net(x, K), runs)
     session = OnnxNetwork(export_onnx(net, work / "candidate.onnx"))
     timings["onnxruntime"] = _median_ms(lambda: session(x, K), runs)
     return {"label": entry["label"], "backbone": cfg.backbone, "depth_backbone": cfg.depth_backbone,
-            "input_size": S, "heatmap": f"{cfg.heatmap_size}² × {cfg.depth_bins}", "gflops": counter.get_total_flops() / 1e9,
+            "input_size": cfg.input_size, "heatmap": f"{cfg.heatmap_size}² × {cfg.depth_bins}",
+            "gflops": network_gflops(net),
             "params_m": sum(p.numel() for p in net.parameters()) / 1e6, "ms": timings}
 
 

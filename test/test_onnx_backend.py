@@ -12,9 +12,8 @@ import torch
 
 from holo_pose_ros.cli import main
 from holo_pose_ros.data.dream import DreamReader
-from holo_pose_ros.data.generator import generate
+from holo_pose_ros.data.generator import generate, load_generator_config
 from holo_pose_ros.data.training import RenderedViews, SampleConfig
-from holo_pose_ros.data.generator import load_generator_config
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cache_dir, cached_export
 from holo_pose_ros.model.weights import load_model

@@ -105,6 +105,13 @@ class HolisticNet(nn.Module):
         }
 
 
+def example_inputs(size: int, batch: int = 1, device: str | torch.device = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Random crops (batch, 3, size, size) and a plausible crop K (focal = size px, centred) to trace, export or
+    count the FLOPs of a network pass."""
+    K = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]], device=device)
+    return torch.rand(batch, 3, size, size, device=device), K.repeat(batch, 1, 1)
+
+
 def pixel_rays(uv: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """K^-1 [u, v, 1]: (B, N, 2) pixels and (B, 3, 3) upper-triangular intrinsics (skew allowed) -> (B, N, 3) rays
     with z = 1. Written out rather than with linalg.inv, which ONNX has no operator for."""

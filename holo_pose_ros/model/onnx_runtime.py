@@ -5,6 +5,7 @@ same named outputs as torch tensors). Forward kinematics stays in torch (pytorch
 from __future__ import annotations
 
 import contextlib
+import copy
 import hashlib
 import logging
 import os
@@ -15,38 +16,30 @@ import numpy as np
 import torch
 
 from holo_pose_ros import __version__
-from holo_pose_ros.model.network import HolisticNet
+from holo_pose_ros.model.network import HolisticNet, example_inputs
+from holo_pose_ros.model.weights import read_card
 
 LOG = logging.getLogger(__name__)
 OPSET = 18
 INPUTS = ("image", "K_crop")
 
 
-def output_names(net: HolisticNet) -> list[str]:
-    """The forward's output keys, in order (they name the graph's outputs)."""
-    S = net.cfg.input_size
-    with torch.inference_mode():
-        return list(net(torch.zeros(1, 3, S, S), _example_K(S)).keys())
-
-
-def _example_K(size: int, batch: int = 1) -> torch.Tensor:
-    return torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]]).repeat(batch, 1, 1)
-
-
 def export_onnx(net: HolisticNet, path: str | Path) -> Path:
-    """Write `net` (on the CPU, eval mode) as one self-contained ONNX file with a dynamic batch dimension."""
+    """Write `net` in eval mode as one self-contained ONNX file with a dynamic batch dimension. The export runs on
+    a CPU copy: the caller's network stays on its device and in its mode."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    net = net.cpu().eval()
-    S = net.cfg.input_size
-    example = (torch.rand(2, 3, S, S), _example_K(S, 2))
+    net = copy.deepcopy(net).cpu().eval()
+    example = example_inputs(net.cfg.input_size, batch=2)
+    with torch.inference_mode():
+        names = list(net(*example).keys())  # the forward's output keys name the graph's outputs
     batch = torch.export.Dim("batch", min=1, max=1024)
     tmp = path.with_name(path.name + ".tmp")
     with warnings.catch_warnings(), _quiet_loggers("torch.onnx", "torch.export", "onnx_ir", "onnxscript"):
         warnings.filterwarnings("ignore", category=FutureWarning)  # the exporter's own chatter, not the user's concern
         warnings.filterwarnings("ignore", message=".*axis name.*")
         torch.onnx.export(net, example, str(tmp), dynamo=True, opset_version=OPSET, input_names=list(INPUTS),
-                          output_names=output_names(net), dynamic_shapes={"image": {0: batch}, "K_crop": {0: batch}},
+                          output_names=names, dynamic_shapes={"image": {0: batch}, "K_crop": {0: batch}},
                           external_data=False, verbose=False)
     os.replace(tmp, path)  # a crash mid-export never leaves a truncated model in the cache
     return path
@@ -71,14 +64,12 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "holo_pose_ros" / "onnx"
 
 
-def cached_export(net: HolisticNet, card_path: Path) -> Path:
-    """The ONNX export of the model behind `card_path`, made once and reused: the file name carries the hash of the
-    weights and the package version, so new weights or a new network code never run a stale graph."""
-    card_path = Path(card_path)
+def cached_export(net: HolisticNet, model: str | Path) -> Path:
+    """The ONNX export of `model` (a shipped name or a card/weights path; `net` is its loaded network), made once
+    and reused: the file name carries the hash of card and weights and the package version, so new weights or new
+    network code never run a stale graph."""
+    card_path, card = read_card(model)
     digest = hashlib.sha256(card_path.read_bytes())
-    import yaml
-
-    card = yaml.safe_load(card_path.read_text())
     digest.update((card_path.parent / card["weights"]).read_bytes())
     path = cache_dir() / f"{card['robot']}-{card['model']['name']}-{__version__}-{digest.hexdigest()[:16]}.onnx"
     if not path.is_file():

@@ -30,6 +30,13 @@ def resolve_model(model: str | Path) -> Path:
     return path
 
 
+def read_card(model: str | Path) -> tuple[Path, dict]:
+    """(card path, card) of a shipped name or a card/weights path."""
+    card_path = resolve_model(model)
+    with open(card_path) as f:
+        return card_path, yaml.safe_load(f)
+
+
 def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None = None,
                dtype: torch.dtype = torch.float32) -> Path:
     """Write `path`.safetensors and its card `path`.yaml (robot, model config, plus `card`). float16 halves the
@@ -51,9 +58,7 @@ def transfer_weights(net: HolisticNet, model: str | Path) -> tuple[int, int]:
     """Warm-start `net` from another model (usually another robot's shipped weights): copy every tensor whose
     name and shape match, except what belongs to the donor's robot (joint limits, initial joints, lambda_0).
     Returns (tensors copied, tensors left as initialized)."""
-    card_path = resolve_model(model)
-    with open(card_path) as f:
-        card = yaml.safe_load(f)
+    card_path, card = read_card(model)
     if card["model"]["backbone"] != net.cfg.backbone or card["model"]["depth_backbone"] != net.cfg.depth_backbone:
         raise ValueError(f"{card_path}: backbones {card['model']['backbone']}/{card['model']['depth_backbone']} "
                          f"differ from this network's {net.cfg.backbone}/{net.cfg.depth_backbone}")
@@ -67,9 +72,7 @@ def transfer_weights(net: HolisticNet, model: str | Path) -> tuple[int, int]:
 
 def load_model(model: str | Path, device: str | torch.device = "cpu") -> tuple[HolisticNet, RobotModel, dict]:
     """(network in eval mode, its robot, its card) from a shipped name or a card/weights path."""
-    card_path = resolve_model(model)
-    with open(card_path) as f:
-        card = yaml.safe_load(f)
+    card_path, card = read_card(model)
     robot = RobotModel(card["robot"], device=device)
     cfg = load_model_config(card["model"])
     net = HolisticNet(replace(cfg, pretrained=False, depth_pretrained=False), robot)  # the weights come from the file

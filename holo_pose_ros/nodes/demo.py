@@ -65,7 +65,7 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
     processes = {
         "estimator": start_node("estimator_node", {"robot": robot, "model": model}, logs / "estimator.log", env),
         "evaluation": start_node("evaluation_node", {"robot": robot, "report_path": str(report_path.resolve())},
-                            logs / "evaluation.log", env),
+                                 logs / "evaluation.log", env),
     }
     rclpy.init()
     watcher = Watcher(out / "annotated")
@@ -77,9 +77,9 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
         rclpy.spin_once(watcher, timeout_sec=0.1)
     for _ in range(10):  # discovery is not instantaneous in both directions
         rclpy.spin_once(watcher, timeout_sec=0.1)
-    processes["replay"] = start_node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot, "lockstep": True,
-                                                      "exit_when_done": True, "lockstep_timeout_s": 60.0},
-                                logs / "replay.log", env)
+    processes["replay"] = start_node("dream_replay_node", {"folder": str(data.resolve()), "robot": robot,
+                                                          "lockstep": True, "exit_when_done": True,
+                                                          "lockstep_timeout_s": 60.0}, logs / "replay.log", env)
     print(f"ROS 2 graph up (domain {env['ROS_DOMAIN_ID']}): replay -> estimator -> evaluation; logs in {logs}")
     start, code = time.monotonic(), 0
     try:

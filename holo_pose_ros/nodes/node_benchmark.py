@@ -56,14 +56,14 @@ class LatencyProbe(Node):
 def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float = 30.0, backend: str = "onnxruntime",
                  tracking: bool = False, threads: int = 0, startup_timeout_s: float = 300.0) -> dict:
     """Run the estimator node on `model` and time `frames` images published at `rate_hz` (after a warm-up)."""
-    from holo_pose_ros.model.weights import load_model
+    from holo_pose_ros.model.weights import read_card
 
-    _, robot, _ = load_model(model)
+    robot = read_card(model)[1]["robot"]  # the node loads the weights; here only the robot's name is needed
     reader = DreamReader(data, robot)
     pool = [(reader.load_image(f), f.K) for f in list(reader)[:20]]
     env = private_graph_env(base_domain=60)
     log = Path(tempfile.mkdtemp(prefix="holo_pose_node_bench_")) / "estimator.log"
-    params = {"robot": robot.name, "model": str(model), "backend": backend, "threads": threads, "tracking": tracking,
+    params = {"robot": robot, "model": str(model), "backend": backend, "threads": threads, "tracking": tracking,
               "min_confidence": 0.0, "publish_annotated": False, "publish_tf": False}
     process = start_node("estimator_node", params, log, env)
     rclpy.init()
