@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from holo_pose_ros.data.training import crop_box_from_keypoints
 from holo_pose_ros.geometry.camera import project
-from holo_pose_ros.geometry.crop import crop_affine, crop_image, full_image_box
+from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box
 from holo_pose_ros.model.network import HolisticNet, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
 BACKENDS = ("torch", "onnxruntime")
-CROP_MARGIN = 0.3  # the crop recipe shared with training (data/training.py)
+LOCALIZE_MIN_KEYPOINT_CONFIDENCE = 0.2  # fit keypoints of the full-image pass that bound the crop box
 
 
 @dataclass
@@ -40,6 +39,18 @@ class Estimate:
     box: np.ndarray | None = None        # (x0, y0, side) of the crop, image pixels (edge coordinates)
     tracked: bool = False                # the crop came from the previous frame
     timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Detection:
+    """The 2D evidence of one frame: the crop box and the fit keypoints seen in it (network only, no fit)."""
+
+    presence: float                      # probability that the robot is in the crop, [0, 1]
+    box: np.ndarray                      # (x0, y0, side) of the crop, image pixels (edge coordinates)
+    uv: np.ndarray                       # (M, 2) fit keypoints, pixels of the input image
+    confidence: np.ndarray               # (M,) heatmap confidence, [0, 1]
+    out: dict                            # the crop pass's raw network output (batch of 1)
+    K_crop: np.ndarray                   # (3, 3) intrinsics of the crop
 
 
 class Estimator:
@@ -106,11 +117,47 @@ class Estimator:
         return result
 
     def localize(self, image: np.ndarray, K: np.ndarray, timings: dict[str, float] | None = None) -> tuple[float, np.ndarray]:
-        """The first pass over the whole letterboxed image: (presence probability, 2D keypoints in image px)."""
+        """The first pass over the whole letterboxed image: (presence probability, 2D keypoints in image px that
+        bound the robot: the confident fit keypoints when the network has heatmaps, else DREAM's)."""
         box = full_image_box(image.shape[1], image.shape[0])
         out = self._network(image, K, box, {} if timings is None else timings)
-        uv = _apply(np.linalg.inv(crop_affine(box, self.size)), out["uv"][0].double().cpu().numpy())
+        uv, confidence = self._keypoints_2d(out, box)
+        if confidence is not None:
+            confident = confidence >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
+            if confident.sum() >= 2:
+                uv = uv[confident]
         return float(torch.sigmoid(out["presence_logit"][0])), uv
+
+    def _keypoints_2d(self, out: dict, box: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Image-pixel 2D keypoints of one pass on `box`: the fit keypoints' heatmap peaks and confidences (M,),
+        or DREAM's keypoints and None for a network without fit heatmaps."""
+        to_image = np.linalg.inv(crop_affine(box, self.size))
+        if "fit_uv" in out:
+            return (_apply(to_image, out["fit_uv"][0].double().cpu().numpy()),
+                    out["fit_confidence"][0].double().cpu().numpy())
+        return _apply(to_image, out["uv"][0].double().cpu().numpy()), None
+
+    def detect(self, image: np.ndarray, K: np.ndarray, timings: dict[str, float] | None = None,
+               uv_hint: np.ndarray | None = None) -> Detection | None:
+        """The network's 2D evidence: localize (or crop around `uv_hint`, image px), then the crop pass. None when
+        the localizer finds no robot."""
+        _check_inputs(image, K)
+        K = np.asarray(K, dtype=np.float64)
+        timings = {} if timings is None else timings
+        H, W = image.shape[:2]
+        if uv_hint is None:
+            start = time.perf_counter()
+            presence, uv_hint = self.localize(image, K, timings)
+            timings["localize"] = (time.perf_counter() - start) * 1e3
+            if presence < self.min_confidence:
+                return None
+        box = crop_box_from_keypoints(uv_hint, W, H, CROP_MARGIN)
+        out = self._network(image, K, box, timings)
+        uv, confidence = self._keypoints_2d(out, box)
+        if confidence is None:
+            confidence = out["keypoint_confidence"][0].double().cpu().numpy()
+        return Detection(float(torch.sigmoid(out["presence_logit"][0])), box, uv, confidence, out,
+                         crop_affine(box, self.size) @ K)
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from holo_pose_ros.geometry.camera import in_image, project
-from holo_pose_ros.geometry.crop import box_from_points, crop_affine, full_image_box
+from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, full_image_box
 
 MODES = ("crop", "full", "negative")
 
@@ -28,16 +28,9 @@ class SampleConfig:
     frame_width: int = 640
     frame_height: int = 480
     mode_probabilities: tuple[float, float, float] = (0.75, 0.15, 0.10)
-    crop_margin: float = 0.3        # the estimator's crop recipe: keypoint extent grown by this on each side
+    crop_margin: float = CROP_MARGIN  # the estimator's crop recipe: keypoint extent grown by this on each side
     shift_sigma: float = 0.08       # box centre jitter, in box sides
     scale_range: tuple[float, float] = (0.85, 1.3)
-
-
-def crop_box_from_keypoints(uv: np.ndarray, width: int, height: int, margin: float) -> np.ndarray:
-    """The estimator's crop box: in-image keypoints (pixels, clipped to the frame) grown by `margin`."""
-    inside = in_image(uv, width, height)
-    pts = uv[inside] if inside.sum() >= 2 else np.clip(uv, [0, 0], [width, height])
-    return box_from_points(pts, margin)
 
 
 def jitter_box(box: np.ndarray, rng: np.random.Generator, cfg: SampleConfig) -> np.ndarray:
@@ -111,10 +104,13 @@ class RenderedViews(torch.utils.data.Dataset):
         T_cam_root = scene.T_cam_base @ links[model.spec.keypoints[model.root_index].link][0].numpy()
         uv = project(kp_cam, K_crop)
         visible = (uv >= -0.5).all(1) & (uv <= S - 0.5).all(1) & in_image(project(kp_cam, K), W, H)
+        fit_cam = model.fit_keypoints_in_camera(q, torch.from_numpy(scene.T_cam_base))[0].numpy()
+        uv_fit = project(fit_cam, K_crop)
+        visible_fit = (uv_fit >= -0.5).all(1) & (uv_fit <= S - 0.5).all(1) & in_image(project(fit_cam, K), W, H)
         f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         return {
             "image": torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0,
             "K_crop": f32(K_crop), "joints": f32(scene.joints), "keypoints_3d": f32(kp_cam), "uv": f32(uv),
-            "visible": torch.from_numpy(visible), "R_root": f32(T_cam_root[:3, :3]), "t_root": f32(T_cam_root[:3, 3]),
+            "visible": torch.from_numpy(visible), "uv_fit": f32(uv_fit), "visible_fit": torch.from_numpy(visible_fit), "R_root": f32(T_cam_root[:3, :3]), "t_root": f32(T_cam_root[:3, 3]),
             "presence": torch.tensor(float(mode != "negative")), "mode": torch.tensor(MODES.index(mode)),
         }

@@ -7,6 +7,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from holo_pose_ros.geometry.camera import in_image
+
+CROP_MARGIN = 0.3  # the crop recipe of training and inference: keypoint extent grown by this on each side
+
 
 def crop_affine(box: np.ndarray, size: int) -> np.ndarray:
     """3x3 map from image pixels to crop pixels for box (x0, y0, side): u' = (u - x0 + 0.5) * S / side - 0.5."""
@@ -50,3 +54,11 @@ def box_from_points(uv: np.ndarray, margin: float = 0.3, min_side: float = 32.0)
     centre = (lo + hi) / 2.0
     side = max(float((hi - lo).max()) * (1.0 + 2.0 * margin), min_side)
     return np.array([centre[0] - side / 2.0, centre[1] - side / 2.0, side])
+
+
+def crop_box_from_keypoints(uv: np.ndarray, width: int, height: int, margin: float = CROP_MARGIN) -> np.ndarray:
+    """The estimator's crop box: in-image keypoints (N, 2 pixels; clipped to the frame when fewer than two are
+    inside) grown by `margin`. Training draws its crop views around the same box."""
+    inside = in_image(uv, width, height)
+    pts = uv[inside] if inside.sum() >= 2 else np.clip(uv, [0, 0], [width, height])
+    return box_from_points(pts, margin)

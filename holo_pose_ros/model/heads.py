@@ -8,6 +8,8 @@ import math
 import torch
 from torch import nn
 
+from holo_pose_ros.model.heatmaps import decode_heatmaps
+
 
 class DepthHead(nn.Module):
     """Root depth d = lambda * d_c. lambda = lambda_0 * exp(s): lambda_0 is the training set's median d / d_c
@@ -37,10 +39,12 @@ def reference_depth(K_crop: torch.Tensor, crop_size: int, reference_side_m: floa
 
 class KeypointHead(nn.Module):
     """KeypointNet: deconvolutions to an N x D x H x W volume per image, softmax over each keypoint's volume,
-    and soft-argmax -> (u, v) in crop pixels and root-relative depth dz in metres."""
+    and soft-argmax -> (u, v) in crop pixels and root-relative depth dz in metres. With `n_fit` > 0, a second
+    1x1 convolution of the same deconvolved features gives 2D heatmaps (H x W logits) of the robot's fit
+    keypoints, decoded to sub-pixel positions and confidences (model/heatmaps.py)."""
 
     def __init__(self, channels: int, n_keypoints: int, crop_size: int, size: int = 64, depth_bins: int = 64,
-                 deconv_channels: int = 256, depth_range_m: float = 1.3):
+                 deconv_channels: int = 256, depth_range_m: float = 1.3, n_fit: int = 0):
         super().__init__()
         layers, cin, res = [], channels, crop_size // 32
         while res < size:
@@ -50,14 +54,22 @@ class KeypointHead(nn.Module):
             raise ValueError(f"heatmap size {size} must be crop_size/32 * 2^k (crop {crop_size})")
         self.deconv = nn.Sequential(*layers)
         self.out = nn.Conv2d(cin, n_keypoints * depth_bins, 1)
+        self.fit_out = nn.Conv2d(cin, n_fit, 1) if n_fit else None
         self.n, self.d, self.size, self.crop_size, self.depth_range = n_keypoints, depth_bins, size, crop_size, depth_range_m
 
     def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(B, C, S/32, S/32) -> uv (B, N, 2) crop px, dz (B, N) m, confidence (B, N) in [0, 1]."""
-        logits = self.out(self.deconv(features))
+        """(B, C, S/32, S/32) -> uv (B, N, 2) crop px, dz (B, N) m, confidence (B, N) in [0, 1]; with fit
+        heatmaps also heatmap_logits (B, M, H, W), fit_uv (B, M, 2) crop px and fit_confidence (B, M)."""
+        deconvolved = self.deconv(features)
+        logits = self.out(deconvolved)
         B = logits.shape[0]
         prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, self.size, self.size)
-        return soft_argmax_3d(prob, self.crop_size, self.depth_range)
+        out = soft_argmax_3d(prob, self.crop_size, self.depth_range)
+        if self.fit_out is not None:
+            heatmaps = self.fit_out(deconvolved)
+            out["heatmap_logits"] = heatmaps
+            out["fit_uv"], out["fit_confidence"] = decode_heatmaps(heatmaps, self.crop_size)
+        return out
 
 
 def soft_argmax_3d(prob: torch.Tensor, crop_size: int, depth_range_m: float) -> dict[str, torch.Tensor]:

@@ -34,6 +34,8 @@ class ModelConfig:
     regressor_hidden: int
     iterations: int
     dropout: float
+    fit_heatmaps: bool = False      # 2D heatmaps of the robot's fit keypoints (older cards have none)
+    heatmap_sigma: float = 1.0      # Gaussian target sigma, heatmap cells
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -72,7 +74,8 @@ class HolisticNet(nn.Module):
         self.register_buffer("depth_std", torch.tensor(depth_info.std).view(1, 3, 1, 1))
         self.depth_head = DepthHead(depth_info.channels)
         self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
-                                          cfg.depth_bins, cfg.deconv_channels, spec.constants.get("keypoint_depth_range_m", 1.3))
+                                          cfg.depth_bins, cfg.deconv_channels, spec.constants.get("keypoint_depth_range_m", 1.3),
+                                          robot.n_fit_keypoints if cfg.fit_heatmaps else 0)
         lower, upper = robot.lower.float().cpu(), robot.upper.float().cpu()
         self.register_buffer("joint_mid", (lower + upper) / 2)
         self.register_buffer("joint_half", (upper - lower) / 2)
@@ -102,6 +105,7 @@ class HolisticNet(nn.Module):
             "keypoints_reg": keypoints_reg, "t": keypoints_reg[:, self.root_index],
             "joints_norm": joints_norm, "joints": self.joint_mid + self.joint_half * joints_norm,
             "rot6d": r6, "R": rot6d_to_matrix(r6), "presence_logit": self.presence(pooled).squeeze(-1),
+            **{k: kp[k] for k in ("heatmap_logits", "fit_uv", "fit_confidence") if k in kp},
         }
 
 

@@ -57,7 +57,7 @@ class RobotModel:
         self._pk_joint_names: list[str] = self.chain.get_joint_parameter_names()
         joints = self.urdf.joint_map
         links = set(self.urdf.link_map)
-        for k in self.spec.keypoints:
+        for k in self.spec.fit_keypoints:
             if k.link not in links:
                 raise ValueError(f"{self.spec.source_file}: keypoint '{k.name}' names link '{k.link}', not in the URDF")
         if self.spec.base_link not in links:
@@ -93,6 +93,10 @@ class RobotModel:
         self.neutral = torch.tensor(self.spec.neutral, dtype=dtype, device=self.device)
         self.joint_types = [joints[j.urdf].type for j in self.spec.joints]
         self._keypoint_links = [k.link for k in self.spec.keypoints]
+        fit = self.spec.fit_keypoints
+        self._fit_links = list(dict.fromkeys(k.link for k in fit))
+        self._fit_link_index = torch.tensor([self._fit_links.index(k.link) for k in fit], device=self.device)
+        self._fit_offsets = torch.tensor([k.xyz for k in fit], dtype=dtype, device=self.device).reshape(-1, 3)
         children = {j.child for j in self.urdf.robot.joints}
         roots = [link for link in self.urdf.link_map if link not in children]
         if len(roots) != 1:
@@ -123,6 +127,15 @@ class RobotModel:
     @property
     def n_keypoints(self) -> int:
         return len(self.spec.keypoints)
+
+    @property
+    def n_fit_keypoints(self) -> int:
+        """DREAM's keypoints plus the YAML's extra fit points."""
+        return len(self.spec.fit_keypoints)
+
+    @property
+    def fit_keypoint_names(self) -> list[str]:
+        return [k.name for k in self.spec.fit_keypoints]
 
     @property
     def link_names(self) -> list[str]:
@@ -172,6 +185,19 @@ class RobotModel:
         """(B, N, 3) keypoints (link-frame origins) in the base frame, metres."""
         mats = self.link_transforms(q, self._keypoint_links)
         return torch.stack([mats[link][:, :3, 3] for link in self._keypoint_links], dim=1)
+
+    def fit_keypoints(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, M, 3) fit keypoints in the base frame, metres: each point's link pose applied to its offset. The
+        first N are DREAM's keypoints."""
+        mats = self.link_transforms(q, self._fit_links)
+        T = torch.stack([mats[link] for link in self._fit_links], dim=1)[:, self._fit_link_index]  # (B, M, 4, 4)
+        return (T[..., :3, :3] @ self._fit_offsets[None, :, :, None])[..., 0] + T[..., :3, 3]
+
+    def fit_keypoints_in_camera(self, q: torch.Tensor, T_cam_base: torch.Tensor) -> torch.Tensor:
+        """(B, M, 3) fit keypoints in the camera frame, given the base pose T_cam<-base (B, 4, 4)."""
+        kp = self.fit_keypoints(q)
+        T = torch.as_tensor(T_cam_base, dtype=kp.dtype, device=kp.device).reshape(-1, 4, 4)
+        return kp @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
 
     def root_transform(self, q: torch.Tensor) -> torch.Tensor:
         """T_base<-root (B, 4, 4): the root keypoint's link frame in the base frame."""

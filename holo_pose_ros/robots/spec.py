@@ -30,6 +30,16 @@ class KeypointSpec:
 
 
 @dataclass(frozen=True)
+class FitKeypointSpec:
+    """A point fixed in URDF link `link` at `xyz` (metres, link frame): one of the points the heatmap network
+    detects and the kinematic fit explains. DREAM's keypoints come first (xyz = 0), then the YAML's extra points."""
+
+    name: str
+    link: str
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
 class JointSpec:
     """An estimated joint: `name` in DREAM files and outputs, `urdf` the URDF joint it drives."""
 
@@ -50,7 +60,13 @@ class RobotSpec:
     neutral: tuple[float, ...]
     fixed_joints: dict[str, float] = field(default_factory=dict)
     constants: dict[str, float] = field(default_factory=dict)
+    extra_fit_keypoints: tuple[FitKeypointSpec, ...] = ()
     source_file: str | None = None
+
+    @property
+    def fit_keypoints(self) -> tuple[FitKeypointSpec, ...]:
+        """DREAM's keypoints (link origins, same order) followed by the extra fit points of the YAML."""
+        return tuple(FitKeypointSpec(k.name, k.link) for k in self.keypoints) + self.extra_fit_keypoints
 
     @property
     def keypoint_names(self) -> list[str]:
@@ -74,6 +90,19 @@ def _require(data: dict, key: str, where: str):
     if key not in data:
         raise ValueError(f"{where}: missing required key '{key}'")
     return data[key]
+
+
+def _fit_keypoints(entries: list, where: str) -> tuple[FitKeypointSpec, ...]:
+    """The YAML's `fit_keypoints` list ({name, link, xyz}), each entry checked."""
+    out = []
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict) or not {"name", "link", "xyz"} <= set(e):
+            raise ValueError(f"{where}: fit_keypoints[{i}] needs name, link and xyz (metres)")
+        xyz = tuple(float(v) for v in e["xyz"])
+        if len(xyz) != 3:
+            raise ValueError(f"{where}: fit_keypoints[{i}] ('{e['name']}'): xyz needs 3 values, got {len(xyz)}")
+        out.append(FitKeypointSpec(str(e["name"]), str(e["link"]), xyz))
+    return tuple(out)
 
 
 def load_robot_spec(robot: str | Path) -> RobotSpec:
@@ -106,8 +135,12 @@ def load_robot_spec(robot: str | Path) -> RobotSpec:
         neutral=neutral,
         fixed_joints={str(k): float(v) for k, v in (data.get("fixed_joints") or {}).items()},
         constants={str(k): float(v) for k, v in (data.get("constants") or {}).items()},
+        extra_fit_keypoints=_fit_keypoints(data.get("fit_keypoints") or [], where),
         source_file=where,
     )
+    names = [k.name for k in spec.fit_keypoints]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{where}: fit keypoint names must be unique (DREAM keypoints included)")
     if spec.root_keypoint not in spec.keypoint_names:
         raise ValueError(f"{where}: root_keypoint '{spec.root_keypoint}' is not one of the keypoints")
     return spec

@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from holo_pose_ros.data.training import MODES
+from holo_pose_ros.model.heatmaps import gaussian_targets, heatmap_cross_entropy
 
 CROP, FULL, NEGATIVE = (MODES.index(m) for m in MODES)
 
@@ -26,8 +27,10 @@ def project_batch(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 
 def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], joint_mid: torch.Tensor,
-                      joint_half: torch.Tensor, crop_size: int) -> dict[str, torch.Tensor]:
-    """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets."""
+                      joint_half: torch.Tensor, crop_size: int, heatmap_sigma: float = 1.0) -> dict[str, torch.Tensor]:
+    """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets.
+    `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points) is there
+    when the network has fit heatmaps."""
     mode, crop = batch["mode"], batch["mode"] == CROP
     robot = mode != NEGATIVE
     visible = batch["visible"] & robot[:, None]
@@ -35,7 +38,12 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
     P = batch["keypoints_3d"]
     kp_fk, kp_reg = out["keypoints_fk"].float(), out["keypoints_reg"]
     uv_fk = project_batch(kp_fk, batch["K_crop"])
-    return {
+    extra = {}
+    if "heatmap_logits" in out:
+        logits = out["heatmap_logits"]
+        targets = gaussian_targets(batch["uv_fit"], logits.shape[-1], crop_size, heatmap_sigma)
+        extra["heatmap"] = heatmap_cross_entropy(logits, targets, batch["visible_fit"] & robot[:, None])
+    return {**extra,
         "joints": _masked_mean(F.smooth_l1_loss(out["joints_norm"], gt_norm, reduction="none", beta=0.1), crop),
         "rotation": _masked_mean((out["R"] - batch["R_root"]).square().sum((1, 2)), crop),
         "translation": _masked_mean((out["t"] - batch["t_root"]).norm(dim=-1), crop),
