@@ -95,3 +95,33 @@ def test_unknown_robot_and_bad_yaml_get_clear_errors(tmp_path):
     bad.write_text("name: x\nurdf: {package: pybullet, path: pybullet_data/kuka_iiwa/model.urdf}\nbase_link: a\n")
     with pytest.raises(ValueError, match="missing required key 'keypoints'"):
         load_robot_spec(bad)
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_fit_keypoints_start_with_dream_and_sit_at_their_link_offsets(robot):
+    model = RobotModel(robot, dtype=torch.float64)
+    reference = yourdfpy.URDF.load(str(urdf_file(model.spec.urdf)), build_scene_graph=True, load_meshes=False)
+    q = model.sample_uniform(3, torch.Generator().manual_seed(1))
+    fit = model.fit_keypoints(q).numpy()
+    assert fit.shape == (3, model.n_fit_keypoints, 3) and model.n_fit_keypoints > model.n_keypoints + 50
+    np.testing.assert_allclose(fit[:, :model.n_keypoints], model.keypoints(q).numpy(), atol=1e-12)
+    by_urdf = {j.urdf: v for j, v in zip(model.spec.joints, q[0].numpy())}
+    reference.update_cfg(np.array([by_urdf.get(n, model.spec.fixed_joints.get(n, 0.0)) for n in reference.actuated_joint_names]))
+    for i, k in enumerate(model.spec.fit_keypoints):
+        T = reference.get_transform(k.link, model.spec.base_link)
+        np.testing.assert_allclose(fit[0, i], T[:3, :3] @ np.array(k.xyz) + T[:3, 3], atol=1e-6)
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_every_estimated_joint_moves_at_least_two_fit_keypoints(robot):
+    """Observability: a small change of any one joint moves several fit points (so the fit can see it)."""
+    model = RobotModel(robot, dtype=torch.float64)
+    q = model.sample_uniform(8, torch.Generator().manual_seed(2))
+    q = torch.maximum(torch.minimum(q, model.upper - 0.05), model.lower + 0.05)
+    base = model.fit_keypoints(q)
+    for j, kind in enumerate(model.joint_types):
+        moved = q.clone()
+        moved[:, j] += 0.01 if kind == "prismatic" else 0.1
+        shift = (model.fit_keypoints(moved) - base).norm(dim=-1)  # (B, M) metres
+        threshold = 0.004 if kind == "prismatic" else 0.003
+        assert ((shift > threshold).sum(1) >= 2).all(), f"{robot}: joint {model.joint_names[j]} barely moves any point"
