@@ -41,6 +41,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_lifter(args: argparse.Namespace) -> int:
+    import shlex
+
+    from holo_pose_ros.train.lifter_trainer import train_lifter
+
+    command = "holo-pose " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    card = train_lifter(args.robot, args.config, minutes=args.minutes if args.steps is None else None,
+                        steps=args.steps, out=args.out, progress=not args.quiet, command=command)
+    print(f"lifter: {card}")
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.data.dream import DreamReader
     from holo_pose_ros.estimator import Estimator
@@ -158,6 +170,17 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", default=None, help="cpu, cuda, cuda:N (default: cuda when available)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
+
+    lf = sub.add_parser("train-lifter", help="train the 2D keypoints -> (q, T_cam<-base) lifter on synthetic samples "
+                                             "from forward kinematics (no rendering; CPU minutes)")
+    lf.add_argument("--robot", required=True, help="robot name (panda, kuka, baxter) or robot YAML path")
+    lf.add_argument("--minutes", type=float, default=12.0, help="wall-clock training time, minutes")
+    lf.add_argument("--steps", type=int, default=None, help="train this many steps instead of --minutes")
+    lf.add_argument("--config", default=None, help="lifter YAML merged over config/lifter.yaml (the defaults)")
+    lf.add_argument("--out", default=None, help="weights path without suffix (default: "
+                                                "holo_pose_ros/weights/<robot>_lifter)")
+    lf.add_argument("--quiet", action="store_true", help="no progress bar")
+    lf.set_defaults(func=_cmd_train_lifter)
 
     e = sub.add_parser("evaluate", help="score a model on a DREAM folder exactly as deployed (no ground truth)")
     e.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
