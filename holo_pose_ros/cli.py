@@ -42,11 +42,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_lifter(args: argparse.Namespace) -> int:
-    import shlex
-
     from holo_pose_ros.train.lifter_trainer import train_lifter
 
-    command = "holo-pose " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = f"holo-pose train-lifter --robot {args.robot} " + (f"--steps {args.steps}" if args.steps is not None
+                                                                 else f"--minutes {args.minutes:g}")
+    command += "".join(f" --{k} {v}" for k, v in (("config", args.config), ("out", args.out)) if v is not None)
     card = train_lifter(args.robot, args.config, minutes=args.minutes if args.steps is None else None,
                         steps=args.steps, out=args.out, progress=not args.quiet, command=command)
     print(f"lifter: {card}")

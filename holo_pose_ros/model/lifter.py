@@ -187,12 +187,14 @@ class Lifter(nn.Module):
     def hypotheses_count(self) -> int:
         return self.cfg.hypotheses
 
-    def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, features: torch.Tensor, bf16: bool = False) -> dict[str, torch.Tensor]:
         """Raw outputs of features (B, F): joints_norm (B, H, J, in [-1, 1]), rot6d (B, H, 6), offset o (B, H, 2,
-        box half-sides), log_depth s (B, H)."""
-        x = nn.functional.gelu(self.inp(features))
-        x = nn.functional.gelu(self.norm(self.blocks(x)))
-        y = self.head(x).view(features.shape[0], self.cfg.hypotheses, self.out_size)
+        box half-sides), log_depth s (B, H). `bf16` runs the trunk under CPU bfloat16 autocast (training: ~3x
+        faster matmuls where the CPU has AMX); the head stays float32."""
+        with torch.autocast(features.device.type, dtype=torch.bfloat16, enabled=bf16):
+            x = nn.functional.gelu(self.inp(features))
+            x = nn.functional.gelu(self.norm(self.blocks(x)))
+        y = self.head(x.to(features.dtype)).view(features.shape[0], self.cfg.hypotheses, self.out_size)
         J = self.n_joints
         return {"joints_norm": torch.tanh(y[..., :J]), "rot6d": y[..., J:J + 6], "offset": y[..., J + 6:J + 8],
                 "log_depth": y[..., J + 8]}

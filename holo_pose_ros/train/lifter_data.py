@@ -189,6 +189,11 @@ class LifterSampler:
         self.robot, self.cfg = robot, sampler_cfg
         self.gen = generator_cfg if generator_cfg is not None else load_generator_config(sampler_cfg["generator"])
         self.width, self.height = int(sampler_cfg["width"]), int(sampler_cfg["height"])
+        # fit keypoints straight from the one FK call that also gives the extent (as RobotModel.fit_keypoints)
+        self._links = robot.link_names
+        fit = robot.spec.fit_keypoints
+        self._fit_link = torch.tensor([self._links.index(k.link) for k in fit])
+        self._fit_xyz = torch.tensor([k.xyz for k in fit], dtype=robot.dtype).reshape(-1, 3)
 
     def sample(self, n: int, generator: torch.Generator) -> LifterBatch:
         """n fresh samples; the same generator state gives the same batch."""
@@ -197,10 +202,13 @@ class LifterSampler:
         q = robot.lower + torch.rand(n, robot.n_joints, generator=g, dtype=dtype) * (robot.upper - robot.lower)
         K = sample_intrinsics_batch(self.gen["intrinsics"], n, self.width, self.height, g, dtype)
         with torch.no_grad():
-            origins = torch.stack([T[:, :3, 3] for T in robot.link_transforms(q).values()], dim=1)
-            centre, radius = robot_extent_batch(origins)
+            links = robot.link_transforms(q, self._links)
+            T_links = torch.stack([links[name] for name in self._links], dim=1)        # (B, L, 4, 4)
+            centre, radius = robot_extent_batch(T_links[:, :, :3, 3])
             T_cam_base = sample_cameras_batch(self.gen["camera"], centre, radius, K, self.height, g)
-            kp_cam = robot.fit_keypoints_in_camera(q, T_cam_base)
+            T_fit = T_links[:, self._fit_link]                                          # (B, M, 4, 4)
+            kp_base = (T_fit[..., :3, :3] @ self._fit_xyz[None, :, :, None])[..., 0] + T_fit[..., :3, 3]
+            kp_cam = kp_base @ T_cam_base[:, :3, :3].transpose(1, 2) + T_cam_base[:, None, :3, 3]
         uv_true = project_batch(kp_cam, K)
         front = kp_cam[..., 2] > float(cfg["min_depth_m"])
         W, H = self.width, self.height

@@ -156,7 +156,7 @@ def train_lifter(robot: str | RobotModel, config: str | Path | dict | None = Non
         for group in opt.param_groups:
             group["lr"] = float(tc["lr"]) * lr_at(progress_frac, step, warmup, float(tc["min_lr_fraction"]))
         batch = sampler.sample(batch_size, g)
-        out_raw = lifter(lifter_features(batch.uv, batch.confidence, batch.box, batch.K))
+        out_raw = lifter(lifter_features(batch.uv, batch.confidence, batch.box, batch.K), bf16=bool(tc["bf16"]))
         loss = winner_takes_all(hypothesis_losses(lifter, out_raw, batch, tc["loss"]), float(tc["all_hypotheses_weight"]))
         opt.zero_grad(set_to_none=True)
         loss.backward()
