@@ -42,11 +42,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_lifter(args: argparse.Namespace) -> int:
+    import torch
+
     from holo_pose_ros.train.lifter_trainer import train_lifter
 
+    torch.set_num_threads(args.threads)
     command = f"holo-pose train-lifter --robot {args.robot} " + (f"--steps {args.steps}" if args.steps is not None
                                                                  else f"--minutes {args.minutes:g}")
     command += "".join(f" --{k} {v}" for k, v in (("config", args.config), ("out", args.out)) if v is not None)
+    command += f" --threads {args.threads}"
     card = train_lifter(args.robot, args.config, minutes=args.minutes if args.steps is None else None,
                         steps=args.steps, out=args.out, progress=not args.quiet, command=command)
     print(f"lifter: {card}")
@@ -179,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--config", default=None, help="lifter YAML merged over config/lifter.yaml (the defaults)")
     lf.add_argument("--out", default=None, help="weights path without suffix (default: "
                                                 "holo_pose_ros/weights/<robot>_lifter)")
+    lf.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: the MLP is small, and "
+                                                            "threads that wait on a busy CPU's cores cost 10x)")
     lf.add_argument("--quiet", action="store_true", help="no progress bar")
     lf.set_defaults(func=_cmd_train_lifter)
 
