@@ -318,6 +318,21 @@ def test_missing_points_do_not_break_the_fit(models, generator_config):
     assert np.all(fitter.cost(uv, np.zeros(M), problem.K, q0[None], T0[None]) == np.inf)
 
 
+def test_coarse_to_fine_stages_grow_from_the_base(models):
+    """Stage weights: nested point sets growing from the base, each short of all points; none when off."""
+    model = model_of(models, "baxter")
+    fitter = Fitter(model)
+    w = np.ones(model.n_fit_keypoints)
+    stages = fitter._stage_weights(w)
+    assert len(stages) >= 2
+    counts = [np.count_nonzero(s) for s in stages]
+    assert counts == sorted(counts) and counts[-1] < len(w) and counts[0] >= fitter.config["min_points"]
+    for a, b in zip(stages, stages[1:]):
+        assert np.all(b[a > 0] > 0)
+    assert np.all(fitter.tree.point_depth[stages[0] > 0] == 0)
+    assert Fitter(model, {"grow_chain_levels": 0})._stage_weights(w) == []
+
+
 def test_start_with_points_behind_the_camera_returns_finite_result(models, generator_config):
     """A start whose base sits at the camera (half the robot behind it): clamped depths, a finite fit."""
     model = model_of(models, "panda")

@@ -237,7 +237,7 @@ class Fitter:
         def prior_cost(q: np.ndarray) -> np.ndarray:
             return 0.0 if pose_only else ((q - q_start) ** 2) @ prior
 
-        stages = [] if pose_only else self._stage_weights(w)
+        stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
         state = linearize(q, R, t)
         damping = np.full(S, float(cfg["damping_init"]))
         converged = np.zeros(S, bool)
