@@ -279,8 +279,8 @@ def test_several_starts_lowest_cost_wins(models, generator_config):
     rng = np.random.default_rng(13)
     problem = sample_problem(fitter.tree, fitter.lower, fitter.upper, generator_config, rng)
     good = perturbed_start(problem, fitter.lower, fitter.upper, _prismatic(model), rng)
-    bad = [(rng.uniform(fitter.lower, fitter.upper), perturbed_start(problem, fitter.lower, fitter.upper,
-                                                                     _prismatic(model), rng, 90.0)[1]) for _ in range(3)]
+    bad = [(rng.uniform(fitter.lower, fitter.upper),
+            perturbed_start(problem, fitter.lower, fitter.upper, _prismatic(model), rng, 90.0)[1]) for _ in range(3)]
     starts = bad[:2] + [good] + bad[2:]
     q0, T0 = np.stack([s[0] for s in starts]), np.stack([s[1] for s in starts])
     weights = np.ones(len(problem.uv))

@@ -158,7 +158,8 @@ class KinematicTree:
 
         points = spec.fit_keypoints
         point_body = np.array([link_body[k.link][0] for k in points], int)
-        point_local = np.array([(link_body[k.link][1] @ np.array([*k.xyz, 1.0]))[:3] for k in points], float).reshape(-1, 3)
+        point_local = np.array([(link_body[k.link][1] @ np.array([*k.xyz, 1.0]))[:3] for k in points],
+                               float).reshape(-1, 3)
         return cls(np.array(parent, int), np.array(C), np.array(axis), np.array(prismatic, bool), np.array(source, int),
                    np.array(gain, float), np.array(bias, float), point_body, point_local, robot.n_joints)
 
