@@ -150,7 +150,7 @@ def decode_pose(R_virtual: torch.Tensor, o: torch.Tensor, s: torch.Tensor, box: 
 
 # -- the network ---------------------------------------------------------------------------------------------------
 class _Block(nn.Module):
-    """Pre-LayerNorm residual MLP block: x + W2 gelu(W1 LN(x))."""
+    """Pre-LayerNorm residual MLP block: x + W gelu(LN(x))."""
 
     def __init__(self, width: int):
         super().__init__()

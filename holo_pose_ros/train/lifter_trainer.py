@@ -91,6 +91,13 @@ def evaluate_lifter(lifter: Lifter, batch: LifterBatch) -> dict[str, float]:
     return {k: round(float(v), 4) for k, v in metrics.items()}
 
 
+VALIDATION_NOTE = ("held-out synthetic samples of the training distribution (config sampler section, its noise "
+                   "included); metrics without suffix: of the hypothesis with the lowest confidence-weighted "
+                   "reprojection error (the estimator's pick), *_oracle: of the best one; joint errors over "
+                   "revolute joints (deg), ADD over DREAM's keypoints in the camera frame (mm); "
+                   "neutral_joint_error_deg: the neutral pose's")
+
+
 def default_out(robot_name: str) -> Path:
     """Where `holo-pose train-lifter` writes by default: the shipped weights folder, `<robot>_lifter`."""
     return weights_dir() / f"{robot_name}_lifter"
@@ -190,6 +197,6 @@ def train_lifter(robot: str | RobotModel, config: str | Path | dict | None = Non
     }
     card_path = save_lifter(lifter, out, card, dtype=save_dtype)
     saved = load_lifter(card_path, robot=robot)  # the metrics of the file as shipped (e.g. float16)
-    card["validation"] = {"samples": int(vc["samples"]), "seed": int(vc["seed"]),
+    card["validation"] = {"what": VALIDATION_NOTE, "samples": int(vc["samples"]), "seed": int(vc["seed"]),
                           "weights": str(tc["save_dtype"]), **evaluate_lifter(saved, val_batch)}
     return save_lifter(lifter, out, card, dtype=save_dtype)
