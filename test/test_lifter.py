@@ -174,3 +174,20 @@ def test_cli_train_lifter(tmp_path):
     card = yaml.safe_load((tmp_path / "kuka_lifter.yaml").read_text())
     assert card["robot"] == "kuka" and card["training"]["command"].startswith("holo-pose")
     assert card["validation"]["weights"] == "float16" and "joint_error_deg" in card["validation"]
+
+
+@pytest.mark.parametrize("name, ratio, add_mm", [("panda", 0.6, 220), ("kuka", 0.8, 230), ("baxter", 0.92, 360)])
+def test_shipped_lifter(name, ratio, add_mm):
+    """Each shipped lifter loads against its robot YAML as it is now (fit keypoints unchanged) and, on fresh
+    held-out samples of its training distribution, keeps its card's accuracy: mean joint error over the neutral
+    pose's below `ratio` (cards: 0.52 / 0.70 / 0.85) and median ADD below `add_mm` (cards: 161 / 180 / 308 mm)."""
+    from holo_pose_ros.resources import weights_dir
+
+    card = weights_dir() / f"{name}_lifter.yaml"
+    if not card.is_file():
+        pytest.skip(f"no shipped {name} lifter")
+    lifter = load_lifter(card)
+    sampler = LifterSampler(lifter.robot, load_lifter_config(lifter.card["training"]["config"])["sampler"])
+    m = evaluate_lifter(lifter, sampler.sample(256, torch.Generator().manual_seed(21)))
+    assert m["joint_error_deg"] < ratio * m["neutral_joint_error_deg"], m
+    assert m["add_mm_median"] < add_mm, m
