@@ -308,7 +308,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
              camera_info_topic: str | None = None, device: str = "cpu", min_confidence: float | None = None,
              tracking: bool = False, storage: str = "mcap", ground_truth_ns: str = GROUND_TRUTH_NS,
              estimates_ns: str = ESTIMATOR_NS, use_rectified_p: bool = False, limit: int | None = None,
-             backend: str = "torch",
+             backend: str = "torch", fit: bool = True,
              progress: bool = True) -> BagEvalSummary:
     """Estimate every Image of the bag (log-time order) with the latest CameraInfo (the one with the same stamp
     when there is one) and write the estimates (found frames) into the new bag `out` under `estimates_ns`, with
@@ -329,7 +329,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
     typestore = _typestore()
     kwargs = {} if min_confidence is None else {"min_confidence": min_confidence}
-    estimator = Estimator.from_model(model, device=device, backend=backend, tracking=tracking, **kwargs)
+    estimator = Estimator.from_model(model, device=device, backend=backend, tracking=tracking, fit=fit, **kwargs)
     robot = estimator.robot
     with AnyReader([bag], default_typestore=typestore) as reader:
         topics = reader.topics

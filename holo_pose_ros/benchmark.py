@@ -21,7 +21,7 @@ from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoin
                           to_pose_stamped, to_transform_stamped)
 
 TRACKING_HOLD = 10  # frames per scene when tracking (the generator's frames are independent scenes)
-STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "messages", "total")
+STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "messages", "total")
 
 
 def network_gflops(net: HolisticNet) -> float:
@@ -45,13 +45,13 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
-              threads: int | None = None, warmup: int = 5, backend: str = "torch") -> dict:
+              threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool = True) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
     Tracking needs a stream: each frame is then held for TRACKING_HOLD frames (a camera watching a slow arm)."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
-                                     min_confidence=0.0)
+                                     min_confidence=0.0, fit=fit)
     reader = DreamReader(data, estimator.robot)
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
     parents = estimator.robot.keypoint_parents
@@ -72,7 +72,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         timings = estimate.timings_ms
         samples["image_conversion"].append((t1 - t0) * 1e3)
         samples["localize"].append(timings.get("localize", 0.0))
-        for stage in ("crop", "network", "kinematics"):
+        for stage in ("crop", "network", "kinematics", "lifter", "fit"):
             samples[stage].append(timings.get(stage, 0.0))
         samples["messages"].append((t3 - t2) * 1e3)
         samples["total"].append((t3 - t0) * 1e3)
@@ -87,7 +87,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),
-        "backend": backend,
+        "backend": backend, "fit": fit,
     }
 
 

@@ -62,10 +62,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.estimator import Estimator
     from holo_pose_ros.evaluation.plots import plot_add_curve, plot_frames_grid
     from holo_pose_ros.evaluation.report import format_report, per_frame_add, write_report
-    from holo_pose_ros.evaluation.run import evaluate_folder
+    from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
 
-    estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking)
+    estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking,
+                                     fit=not args.no_fit)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
+    if args.ablation:
+        reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet)
+        print(format_ablation(reports))
+        if args.out:
+            write_report(reports, args.out)
+            print(f"report: {args.out}")
+        return 0
     report, results, images = evaluate_folder(estimator, reader, known_joints=args.known_joints, limit=args.limit,
                                               progress=not args.quiet, keep_images=12 if args.plots else 0)
     print(format_report(report))
@@ -99,7 +107,7 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
     summary = bag_eval(args.bag, args.model, args.out, image_topic=args.image_topic,
                        camera_info_topic=args.info_topic, device=args.device, min_confidence=args.min_confidence,
                        tracking=args.tracking, storage=args.storage, use_rectified_p=args.use_rectified_p,
-                       backend=args.backend,
+                       backend=args.backend, fit=not args.no_fit,
                        limit=args.limit, progress=not args.quiet)
     print(f"{summary.n_images} images: {summary.n_found} found, {summary.n_not_found} not found, "
           f"{summary.n_skipped} skipped; estimates: {summary.out}")
@@ -117,7 +125,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from holo_pose_ros.benchmark import benchmark, format_benchmark
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
-                       threads=args.threads, backend=args.backend)
+                       threads=args.threads, backend=args.backend, fit=not args.no_fit)
     print(format_benchmark(result))
     if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
@@ -193,6 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="DREAM folder")
     e.add_argument("--known-joints", action="store_true", help="use the true joints (camera-to-robot calibration)")
     e.add_argument("--tracking", action="store_true", help="crop from the previous frame (for video sequences)")
+    e.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
+    e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
+                                                         "lifter, fitted, and fitted with the true joints")
     e.add_argument("--out", default=None, help="report.json path")
     e.add_argument("--plots", default=None, help="folder for the ADD curve and a grid of frames")
     e.add_argument("--limit", type=int, default=None, help="only the first N frames")
@@ -231,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--limit", type=int, default=None, help="only the first N images")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     b.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
+    b.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_cmd_bag_eval)
 
@@ -240,6 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--frames", type=int, default=100, help="timed frames (after 5 untimed warm-up frames)")
     m.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     m.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
+    m.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")

@@ -19,6 +19,8 @@ from holo_pose_ros.model.network import HolisticNet, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
 BACKENDS = ("torch", "onnxruntime")
+METHODS = ("feed-forward", "lifter", "fitted")
+FIT_QUALITY_SCALE = 0.1  # crop-box sides: a fit whose RMS residual is this halves the estimate's confidence
 LOCALIZE_MIN_KEYPOINT_CONFIDENCE = 0.2  # fit keypoints of the full-image pass that bound the crop box
 
 
@@ -38,6 +40,9 @@ class Estimate:
     root_depth_m: float | None = None
     box: np.ndarray | None = None        # (x0, y0, side) of the crop, image pixels (edge coordinates)
     tracked: bool = False                # the crop came from the previous frame
+    detected_2d: np.ndarray | None = None  # (M, 2) pixels: the network's fit keypoints (the fit's evidence)
+    detected_confidence: np.ndarray | None = None  # (M,) their heatmap confidence, [0, 1]
+    fit_rms_px: float | None = None      # weighted RMS reprojection error of the kinematic fit, pixels
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -54,12 +59,20 @@ class Detection:
 
 
 class Estimator:
-    """Holistic robot pose from raw RGB images. `tracking` reuses the previous frame's keypoints for the crop (one
-    network pass a frame) and re-localizes when the confidence drops below `min_confidence`."""
+    """Holistic robot pose from raw RGB images. `tracking` reuses the previous frame's fitted keypoints for the
+    crop (one network pass a frame) and its pose as one more start of the fit; it re-localizes when the robot is
+    lost. `fit` (default) fits the kinematic model to the detected 2D keypoints from every start (paper heads,
+    `lifter` hypotheses, previous frame); `fit=False` gives the paper's feed-forward estimate. Keypoints below
+    `min_keypoint_confidence` do not count in the fit. The estimate's confidence is the presence probability times
+    the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
+    so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
-                 backend: str = "torch"):
+                 backend: str = "torch", fit: bool = True, lifter=None, fit_config: dict | str | None = None,
+                 min_keypoint_confidence: float = 0.1):
+        from holo_pose_ros.fitting import Fitter
+
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
         self.network = network or self.net  # what runs a pass: the torch module, or an OnnxNetwork standing in
@@ -67,7 +80,11 @@ class Estimator:
         self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
         self.size = net.cfg.input_size
         self.min_confidence, self.tracking = min_confidence, tracking
+        self.fit, self.lifter = fit, lifter
+        self.min_keypoint_confidence = min_keypoint_confidence
+        self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
+        self._previous_hint: np.ndarray | None = None  # (M, 2) pixels: the previous fit's keypoints
 
     @classmethod
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
@@ -78,7 +95,12 @@ class Estimator:
 
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
-        net, robot, _ = load_model(model, device)
+        net, robot, card = load_model(model, device)
+        if "lifter" in card and "lifter" not in kwargs:
+            from holo_pose_ros.model.lifter import load_lifter
+            from holo_pose_ros.model.weights import resolve_model
+
+            kwargs["lifter"] = load_lifter(resolve_model(model).parent / card["lifter"]).eval()
         network = None
         if backend == "onnxruntime":
             from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
@@ -88,7 +110,7 @@ class Estimator:
 
     def reset(self) -> None:
         """Forget the tracked state (e.g. when the stream jumps)."""
-        self._previous = None
+        self._previous = self._previous_hint = None
 
     @torch.inference_mode()
     def _network(self, image: np.ndarray, K: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> dict:
@@ -110,7 +132,7 @@ class Estimator:
         """FK of the crop pass (with the known joints, if given) -> numpy outputs; the 'kinematics' timing."""
         t0 = time.perf_counter()
         if known_joints is not None:
-            out["joints"] = torch.as_tensor(known_joints, dtype=out["joints"].dtype, device=self.device).reshape(1, -1)
+            out["joints"] = torch.as_tensor(np.array(known_joints), dtype=out["joints"].dtype, device=self.device).reshape(1, -1)
         out = {k: v.to(self.device) for k, v in out.items()}
         result = {k: v[0].detach().cpu().double().numpy() for k, v in add_kinematics(self.robot, out).items()}
         timings["kinematics"] = (time.perf_counter() - t0) * 1e3
@@ -154,47 +176,120 @@ class Estimator:
         box = crop_box_from_keypoints(uv_hint, W, H, CROP_MARGIN)
         out = self._network(image, K, box, timings)
         uv, confidence = self._keypoints_2d(out, box)
-        if confidence is None:
-            confidence = out["keypoint_confidence"][0].double().cpu().numpy()
+        if confidence is None:  # no fit heatmaps: DREAM's keypoints are the only evidence, the rest weigh 0
+            M = self.robot.n_fit_keypoints
+            uv = np.concatenate([uv, np.zeros((M - len(uv), 2))])
+            confidence = np.zeros(M)
+            confidence[:self.robot.n_keypoints] = out["keypoint_confidence"][0].double().cpu().numpy()
         return Detection(float(torch.sigmoid(out["presence_logit"][0])), box, uv, confidence, out,
                          crop_affine(box, self.size) @ K)
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
-        the joint states are known and trusted, replaces the estimated ones (camera-to-robot calibration mode)."""
+        the joint states are known and trusted, fixes the joints: only the camera-to-robot pose is estimated
+        (calibration mode). The kinematic fit runs unless the estimator was built with `fit=False`."""
+        method = "fitted" if self.fit else "feed-forward"
+        return self.estimate_methods(image, K, known_joints, (method,))[method]
+
+    def estimate_methods(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None,
+                         methods: tuple[str, ...] = METHODS) -> dict[str, Estimate]:
+        """One detection, several ways of turning it into an estimate (the ablation of `holo-pose evaluate`):
+        'feed-forward' (the paper's heads), 'lifter' (its best hypothesis by reprojection, no fit) and 'fitted'
+        (the kinematic fit from every start). The tracked state follows the last method asked for."""
+        unknown = set(methods) - set(METHODS)
+        if unknown:
+            raise ValueError(f"unknown estimation methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
         _check_inputs(image, K)
         K = np.asarray(K, dtype=np.float64)
-        H, W = image.shape[:2]
         timings, start = {}, time.perf_counter()
         names = dict(joint_names=self.robot.joint_names, keypoint_names=self.robot.keypoint_names)
-        tracked = self.tracking and self._previous is not None and self._previous.found
-        if tracked:
-            uv = self._previous.keypoints_2d
-        else:
-            presence, uv = self.localize(image, K, timings)
-            timings["localize"] = (time.perf_counter() - start) * 1e3
-            if presence < self.min_confidence:
-                self._previous = None
-                return Estimate(False, presence, timings_ms={**timings, "total": timings["localize"]}, **names)
-        box = crop_box_from_keypoints(uv, W, H, CROP_MARGIN)
-        t0 = time.perf_counter()
-        out = self._kinematics(self._network(image, K, box, timings), known_joints, timings)
-        timings["estimate"] = (time.perf_counter() - t0) * 1e3
-        confidence = float(1 / (1 + np.exp(-out["presence_logit"])))
-        if confidence < self.min_confidence:
-            self._previous = None
+        previous = self._previous
+        tracked = self.tracking and previous is not None and previous.found and self._previous_hint is not None
+        detection = self.detect(image, K, timings, uv_hint=self._previous_hint if tracked else None)
+        if detection is None or detection.presence < self.min_confidence:
+            self._previous = self._previous_hint = None
             if tracked:  # lost the robot: look for it in the whole image again
-                return self.estimate(image, K, known_joints)
+                return self.estimate_methods(image, K, known_joints, methods)
+            presence = 0.0 if detection is None else detection.presence
             timings["total"] = (time.perf_counter() - start) * 1e3
-            return Estimate(False, confidence, timings_ms=timings, box=box, **names)
-        keypoints_3d = out["keypoints_fk"]
-        result = Estimate(
-            True, confidence, joints=out["joints"], T_cam_base=out["T_cam_base"], keypoints_3d=keypoints_3d,
-            keypoints_2d=project(keypoints_3d, K), keypoint_confidence=out["keypoint_confidence"],
-            root_depth_m=float(out["depth"]), box=box, tracked=tracked, timings_ms=timings, **names)
-        result.timings_ms["total"] = (time.perf_counter() - start) * 1e3
-        self._previous = result
-        return result
+            box = None if detection is None else detection.box
+            return {m: Estimate(False, presence, timings_ms=dict(timings), box=box, **names) for m in methods}
+        t0 = time.perf_counter()
+        ff = self._kinematics(detection.out, known_joints, timings)
+        poses = {"feed-forward": (ff["joints"], ff["T_cam_base"], None)}
+        weights = np.where(detection.confidence >= self.min_keypoint_confidence, detection.confidence, 0.0)
+        hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
+            "lifter" in methods or "fitted" in methods) else None
+        if "lifter" in methods and hypotheses is not None:
+            costs = self.fitter.cost(detection.uv, weights, K, hypotheses[0], hypotheses[1])
+            best = int(np.argmin(costs))
+            poses["lifter"] = (hypotheses[0][best], hypotheses[1][best], None)
+        if "fitted" in methods:
+            q0, T0 = [ff["joints"][None]], [ff["T_cam_base"][None]]
+            if hypotheses is not None:
+                q0.append(hypotheses[0]); T0.append(hypotheses[1])
+            if tracked and previous.joints is not None:
+                q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
+            t1 = time.perf_counter()
+            fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints)
+            timings["fit"] = (time.perf_counter() - t1) * 1e3
+            poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
+        timings["estimate"] = (time.perf_counter() - t0) * 1e3
+        results = {}
+        for method in methods:
+            if method not in poses:  # no lifter shipped with this model
+                results[method] = Estimate(False, 0.0, timings_ms=dict(timings), box=detection.box, **names)
+                continue
+            results[method] = self._estimate_from_pose(detection, K, *poses[method], ff, tracked, timings, names)
+        for r in results.values():
+            r.timings_ms["total"] = (time.perf_counter() - start) * 1e3
+        last = results[methods[-1]]
+        self._previous = last if last.found else None
+        self._previous_hint = self._projected_fit_keypoints(last, K) if last.found else None
+        return results
+
+    def _lifter_hypotheses(self, detection: Detection, K: np.ndarray, known_joints: np.ndarray | None,
+                           timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """The lifter's hypotheses (q (H, J), T_cam_base (H, 4, 4)) from the detected 2D keypoints; the 'lifter'
+        timing. Known joints replace the hypotheses' joints."""
+        t0 = time.perf_counter()
+        f32 = lambda a: torch.as_tensor(np.asarray(a)[None], dtype=torch.float32)  # noqa: E731
+        with torch.inference_mode():
+            q, T = self.lifter.hypotheses(f32(detection.uv), f32(detection.confidence), f32(detection.box), f32(K))
+        q, T = q[0].double().cpu().numpy(), T[0].double().cpu().numpy()
+        if known_joints is not None:
+            q = np.repeat(np.asarray(known_joints, dtype=np.float64)[None], len(q), 0)
+        timings["lifter"] = (time.perf_counter() - t0) * 1e3
+        return q, T
+
+    def _estimate_from_pose(self, detection: Detection, K: np.ndarray, q: np.ndarray, T_cam_base: np.ndarray, fit,
+                            ff: dict, tracked: bool, timings: dict, names: dict) -> Estimate:
+        """An Estimate from joints and base pose. Its confidence is the presence probability times the fit's
+        quality (1 without a fit); below `min_confidence` the robot is 'not found'."""
+        side = float(detection.box[2])
+        quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * side)) ** 2)
+        confidence = detection.presence * quality
+        if confidence < self.min_confidence:
+            return Estimate(False, confidence, timings_ms=dict(timings), box=detection.box, fit_rms_px=fit.rms_px,
+                            detected_2d=detection.uv, detected_confidence=detection.confidence, **names)
+        with torch.inference_mode():
+            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
+            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
+            keypoints_3d = self.robot.keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
+        root = keypoints_3d[self.robot.root_index, 2] if fit is not None else float(ff["depth"])
+        return Estimate(
+            True, confidence, joints=np.asarray(q, dtype=np.float64), T_cam_base=np.asarray(T_cam_base, dtype=np.float64),
+            keypoints_3d=keypoints_3d, keypoints_2d=project(keypoints_3d, K), keypoint_confidence=ff["keypoint_confidence"],
+            root_depth_m=float(root), box=detection.box, tracked=tracked, timings_ms=dict(timings),
+            detected_2d=detection.uv, detected_confidence=detection.confidence,
+            fit_rms_px=None if fit is None else fit.rms_px, **names)
+
+    def _projected_fit_keypoints(self, estimate: Estimate, K: np.ndarray) -> np.ndarray:
+        """(M, 2) image pixels of every fit keypoint of an estimate: the next frame's crop when tracking."""
+        with torch.inference_mode():
+            q = torch.as_tensor(estimate.joints[None], dtype=self.robot.dtype, device=self.device)
+            T = torch.as_tensor(estimate.T_cam_base[None], dtype=self.robot.dtype, device=self.device)
+            return project(self.robot.fit_keypoints_in_camera(q, T)[0].double().cpu().numpy(), K)
 
 
 def _apply(A: np.ndarray, uv: np.ndarray) -> np.ndarray:

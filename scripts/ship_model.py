@@ -1,15 +1,18 @@
 """Ship a trained model: score its kept checkpoint on held-out generated test folders (never seen in training or
 validation) through the deployed estimator, and write holo_pose_ros/weights/<name>.safetensors (float16) with a
-model card that records the training, the metrics and the commands that measured them.
+model card that records the training, the metrics and the commands that measured them. With `--lifter`, the
+lifter ships beside it (<name>_lifter.*, named in the card) and each test set also gets the ablation (feed-forward
+/ lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
 
-    python scripts/ship_model.py runs/panda_lite_cpu/best.yaml panda --test data/panda_test_dr:randomized \
-        --test data/panda_test_photo:photo
+    python scripts/ship_model.py runs/panda_heatmap_cpu/best.yaml panda --lifter runs/lifter/panda_lifter.yaml \
+        --test data/panda_test_dr:randomized --test data/panda_test_photo:photo --log runs/panda_heatmap_cpu/log.csv
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -18,12 +21,14 @@ import torch
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import SETTINGS_FILE
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.evaluation.run import evaluate_folder
+from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
+from holo_pose_ros.model.lifter import load_lifter, save_lifter
 from holo_pose_ros.model.weights import load_model, save_model
 from holo_pose_ros.resources import weights_dir
 
 KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm", "joint_error_deg",
-        "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps")
+        "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px")
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,22 +36,50 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("card", help="the trained model card (runs/<name>/best.yaml)")
     parser.add_argument("name", help="shipped name (holo_pose_ros/weights/<name>.*)")
     parser.add_argument("--test", action="append", required=True, help="DIR:LOOK of a held-out DREAM folder")
+    parser.add_argument("--lifter", default=None, help="lifter card to ship with the model (holo-pose train-lifter)")
+    parser.add_argument("--log", default=None, help="the run's log.csv, kept as docs/training_logs/<run>.csv")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
+    lifter = load_lifter(args.lifter) if args.lifter else None
+    extra = {}
+    if lifter is not None:
+        lifter_card = save_lifter(lifter, weights_dir() / f"{args.name}_lifter",
+                                  {k: v for k, v in lifter.card.items() if k in ("training", "validation")},
+                                  dtype=torch.float16)
+        extra["lifter"] = lifter_card.name
+        lifter = load_lifter(lifter_card)  # score what ships (float16)
     metrics = {}
     for item in args.test:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        report, _, _ = evaluate_folder(Estimator(net, robot), reader)
+        estimator = Estimator(net, robot, lifter=lifter)
+        report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
             "command": f"holo-pose evaluate --model {args.name} --data {folder} --out report.json",
-            **{k: report[k] for k in KEPT},
+            **{k: report[k] for k in KEPT if k in report},
         }
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
               f"not found {report['n_not_found']}/{report['n_frames']}")
+        if lifter is not None:
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), reader)
+            print(format_ablation(ablation))
+            metrics[look or Path(folder).name]["ablation"] = {
+                "command": f"holo-pose evaluate --model {args.name} --data {folder} --ablation",
+                **{method: {k: r[k] for k in ("add_auc", "add_mean_mm", "add_median_mm", "n_not_found")}
+                   | {"joint_error_mean_deg": r["joint_error_deg"]["mean"],
+                      "rotation_error_mean_deg": r["rotation_error_deg"]["mean"]}
+                   for method, r in ablation.items()}}
+    if args.log:
+        run = Path(args.card).resolve().parent.name
+        (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
+        shutil.copy(args.log, ROOT / "docs" / "training_logs" / f"{run}.csv")
     shipped = {k: card[k] for k in ("training", "validation") if k in card}
-    out = save_model(net, robot.name, weights_dir() / args.name, {**shipped, "test": metrics}, dtype=torch.float16)
+    run_config = ROOT / "config" / "train" / f"{Path(args.card).resolve().parent.name}.yaml"
+    if "training" in shipped and run_config.exists():  # the next run of the campaign warm-starts from this card
+        shipped["training"]["resume_command"] = f"holo-pose train --config {run_config.relative_to(ROOT)}"
+    out = save_model(net, robot.name, weights_dir() / args.name, {**extra, **shipped, "test": metrics},
+                     dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
 

@@ -57,15 +57,19 @@ def test_network_shapes_and_units(robot, views):
     batch = torch.stack([v["image"] for v in views[:2]]), torch.stack([v["K_crop"] for v in views[:2]])
     with torch.no_grad():
         out = add_kinematics(robot, net(*batch))
-    N, J = robot.n_keypoints, robot.n_joints
+    N, J, M = robot.n_keypoints, robot.n_joints, robot.n_fit_keypoints
     shapes = {"depth": (2,), "uv": (2, N, 2), "dz": (2, N), "keypoint_confidence": (2, N), "keypoints_reg": (2, N, 3),
               "t": (2, 3), "joints": (2, J), "rot6d": (2, 6), "R": (2, 3, 3), "presence_logit": (2,),
-              "keypoints_fk": (2, N, 3), "T_cam_base": (2, 4, 4)}
+              "keypoints_fk": (2, N, 3), "T_cam_base": (2, 4, 4), "heatmap_logits": (2, M, 16, 16),
+              "fit_uv": (2, M, 2), "fit_confidence": (2, M)}
     assert {k: tuple(v.shape) for k, v in out.items() if k in shapes} == shapes
     assert (out["depth"] > 0).all() and torch.allclose(out["t"], out["keypoints_reg"][:, robot.root_index])
     assert torch.allclose(out["keypoints_reg"][:, :, 2] - out["depth"][:, None], out["dz"], atol=1e-5)  # metres
-    assert torch.allclose(out["joints"][0], robot.neutral, atol=0.05)  # regression starts at the neutral pose
+    # regression starts near the neutral pose (the last layer's small random init: within 0.1 rad, not +-pi)
+    assert torch.allclose(out["joints"][0], robot.neutral, atol=0.1)
     assert ((out["uv"] >= -0.5) & (out["uv"] <= 63.5)).all()           # crop pixels
+    assert ((out["fit_uv"] >= -0.5) & (out["fit_uv"] <= 63.5)).all()
+    assert ((out["fit_confidence"] >= 0) & (out["fit_confidence"] <= 1)).all()
 
 
 def test_fk_of_the_true_state_reproduces_the_true_keypoints(robot, views):

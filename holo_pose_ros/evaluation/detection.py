@@ -1,47 +1,40 @@
-"""The 2D error of the network's keypoint evidence through the deployed detection path (localize, crop, heatmaps;
-no fit), in pixels of the input image: what decides the fitted accuracy. DREAM's keypoints and the extra fit
-keypoints are reported apart."""
+"""The 2D error of the network's keypoint evidence (heatmap peaks of the fit keypoints, before any fit), in pixels
+of the input image: what decides the fitted accuracy. DREAM's keypoints and all fit keypoints are reported apart."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from holo_pose_ros.geometry.camera import in_image, project
 
 
-def detection_errors(estimator, reader, limit: int | None = None, progress: bool = False) -> dict:
-    """Median / mean 2D error (px) of DREAM and of all fit keypoints over the in-image points of frames where the
-    robot was detected, plus the count of frames it was missed in. Needs frames with joints and a base pose."""
-    robot = estimator.robot
-    n_dream = robot.n_keypoints
-    dream, fit, missed, frames = [], [], 0, 0
-    for frame in tqdm(list(reader)[:limit], desc="2D", unit="frame", disable=not progress):
-        if frame.joints is None or frame.T_cam_base is None:
-            continue
-        frames += 1
-        detection = estimator.detect(reader.load_image(frame), frame.K)
-        if detection is None:
-            missed += 1
-            continue
-        with torch.no_grad():
-            points = robot.fit_keypoints_in_camera(torch.as_tensor(frame.joints[None], dtype=robot.dtype, device=robot.device),
-                                                   torch.as_tensor(frame.T_cam_base[None], dtype=robot.dtype, device=robot.device))
-        gt = project(points[0].double().cpu().numpy(), frame.K)
-        inside = in_image(gt, frame.width, frame.height)
-        error = np.linalg.norm(detection.uv[:len(gt)] - gt, axis=1)
-        if len(detection.uv) < len(gt):  # a network without fit heatmaps: DREAM's keypoints only
-            error = np.linalg.norm(detection.uv - gt[:len(detection.uv)], axis=1)
-            inside = inside[:len(detection.uv)]
-        dream.append(error[:n_dream][inside[:n_dream]])
-        fit.append(error[inside])
-    dream_all = np.concatenate(dream) if dream else np.array([])
-    fit_all = np.concatenate(fit) if fit else np.array([])
+def ground_truth_fit_keypoints(robot, frame) -> np.ndarray | None:
+    """(M, 2) pixels of every fit keypoint from a frame's true joints and base pose; None when it lacks them."""
+    if frame.joints is None or frame.T_cam_base is None:
+        return None
+    with torch.no_grad():
+        q = torch.as_tensor(np.array(frame.joints[None]), dtype=robot.dtype, device=robot.device)
+        T = torch.as_tensor(np.array(frame.T_cam_base[None]), dtype=robot.dtype, device=robot.device)
+        points = robot.fit_keypoints_in_camera(q, T)[0].double().cpu().numpy()
+    return project(points, frame.K)
 
+
+def keypoint_errors_px(detected: np.ndarray, gt: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(M,) pixel distance of detected to true fit keypoints, NaN where the true point is outside the image."""
+    error = np.linalg.norm(np.asarray(detected, float) - gt, axis=1)
+    error[~in_image(gt, width, height)] = np.nan
+    return error
+
+
+def summarize_2d(errors: list[np.ndarray], n_dream: int, n_frames: int, n_missed: int) -> dict:
+    """Median / mean 2D error (px) of DREAM's and of all fit keypoints over per-frame (M,) error arrays."""
     def stat(values: np.ndarray, f) -> float | None:
+        values = values[np.isfinite(values)]
         return float(f(values)) if values.size else None
 
-    return {"n_frames_2d": frames, "n_missed_2d": missed,
-            "kp2d_dream_median_px": stat(dream_all, np.median), "kp2d_dream_mean_px": stat(dream_all, np.mean),
-            "kp2d_fit_median_px": stat(fit_all, np.median), "kp2d_fit_mean_px": stat(fit_all, np.mean)}
+    dream = np.concatenate([e[:n_dream] for e in errors]) if errors else np.zeros(0)
+    fit = np.concatenate(errors) if errors else np.zeros(0)
+    return {"n_frames_2d": n_frames, "n_missed_2d": n_missed,
+            "kp2d_dream_median_px": stat(dream, np.median), "kp2d_dream_mean_px": stat(dream, np.mean),
+            "kp2d_fit_median_px": stat(fit, np.median), "kp2d_fit_mean_px": stat(fit, np.mean)}

@@ -9,7 +9,8 @@ import numpy as np
 from tqdm import tqdm
 
 from holo_pose_ros.data.dream import DreamReader
-from holo_pose_ros.estimator import Estimate, Estimator
+from holo_pose_ros.estimator import METHODS, Estimate, Estimator
+from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints, keypoint_errors_px, summarize_2d
 from holo_pose_ros.evaluation.report import FrameResult, build_report
 
 
@@ -35,7 +36,7 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
     """Estimate every frame (in file order, tracking state reset between frames unless the estimator tracks) and
     build the report; also return the per-frame results and the first `keep_images` images (for plots)."""
     frames = list(reader)[:limit]
-    results, images = [], []
+    results, images, errors, missed, n_2d = [], [], [], 0, 0
     robot = estimator.robot
     for frame in tqdm(frames, desc="evaluate", unit="frame", disable=not progress):
         image = reader.load_image(frame)
@@ -44,8 +45,64 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
         start = time.perf_counter()
         estimate = estimator.estimate(image, frame.K, frame.joints if known_joints else None)
         results.append(frame_result(frame, estimate, time.perf_counter() - start, robot))
+        gt = ground_truth_fit_keypoints(robot, frame)
+        if gt is not None:
+            n_2d += 1
+            if estimate.detected_2d is None:
+                missed += 1
+            else:
+                errors.append(keypoint_errors_px(estimate.detected_2d, gt, frame.width, frame.height))
         if len(images) < keep_images:
             images.append(image)
     spec = robot.spec
     report = build_report(results, spec.joint_names, robot.joint_types, spec.keypoint_names)
+    report.update(summarize_2d(errors, robot.n_keypoints, n_2d, missed))
     return report, results, images
+
+
+def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | None = None, progress: bool = True,
+                     known_joints: bool = True) -> dict[str, dict]:
+    """The ablation on the same frames and the same detections: one report per estimation method (feed-forward,
+    lifter, fitted) and, when the frames have joints and `known_joints`, 'fitted, known joints' (only the pose
+    fitted). Each report also has the detection's median 2D errors (DREAM and fit keypoints, px)."""
+    frames = list(reader)[:limit]
+    robot = estimator.robot
+    results: dict[str, list[FrameResult]] = {}
+    errors, missed, n_2d = [], 0, 0
+    for frame in tqdm(frames, desc="ablation", unit="frame", disable=not progress):
+        image = reader.load_image(frame)
+        start = time.perf_counter()
+        estimates = estimator.estimate_methods(image, frame.K, None, METHODS)
+        seconds = time.perf_counter() - start
+        if known_joints and frame.joints is not None:
+            estimates["fitted, known joints"] = estimator.estimate_methods(image, frame.K, frame.joints, ("fitted",))["fitted"]
+        for method, estimate in estimates.items():
+            results.setdefault(method, []).append(frame_result(frame, estimate, seconds, robot))
+        gt = ground_truth_fit_keypoints(robot, frame)
+        if gt is not None:
+            n_2d += 1
+            detected = estimates["fitted"].detected_2d
+            if detected is None:
+                missed += 1
+            else:
+                errors.append(keypoint_errors_px(detected, gt, frame.width, frame.height))
+    spec = robot.spec
+    two_d = summarize_2d(errors, robot.n_keypoints, n_2d, missed)
+    return {method: {**build_report(r, spec.joint_names, robot.joint_types, spec.keypoint_names), **two_d}
+            for method, r in results.items()}
+
+
+def format_ablation(reports: dict[str, dict]) -> str:
+    """A Markdown table of the ablation: one row per method."""
+    lines = ["| method | ADD AUC | mean ADD mm | median ADD mm | joint error deg | rotation error deg | not found |",
+             "|---|---|---|---|---|---|---|"]
+    fmt = lambda v, d=1: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
+    for method, r in reports.items():
+        lines.append(f"| {method} | {fmt(r['add_auc'])} | {fmt(r['add_mean_mm'])} | {fmt(r['add_median_mm'])} | "
+                     f"{fmt(r['joint_error_deg']['mean'])} | {fmt(r['rotation_error_deg']['mean'])} | "
+                     f"{r['n_not_found']}/{r['n_frames']} |")
+    any_report = next(iter(reports.values()))
+    lines.append(f"\nnetwork 2D error (median, px): DREAM keypoints {fmt(any_report['kp2d_dream_median_px'])}, "
+                 f"fit keypoints {fmt(any_report['kp2d_fit_median_px'])} "
+                 f"({any_report['n_missed_2d']}/{any_report['n_frames_2d']} frames without a detection)")
+    return "\n".join(lines)

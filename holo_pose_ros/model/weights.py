@@ -23,11 +23,15 @@ def resolve_model(model: str | Path) -> Path:
     elif not path.suffix:
         path = weights_dir() / f"{model}.yaml"
         if not path.is_file():
-            shipped = sorted(p.stem for p in weights_dir().glob("*.yaml"))
-            raise ValueError(f"no shipped model '{model}'; shipped: {', '.join(shipped) or 'none'}")
+            raise ValueError(f"no shipped model '{model}'; shipped: {', '.join(shipped_models()) or 'none'}")
     if not path.is_file():
         raise FileNotFoundError(f"model card not found: {path}")
     return path
+
+
+def shipped_models() -> list[str]:
+    """Names of the shipped models (their cards in holo_pose_ros/weights; lifter cards, `*_lifter.yaml`, aside)."""
+    return sorted(p.stem for p in weights_dir().glob("*.yaml") if not p.stem.endswith("_lifter"))
 
 
 def read_card(model: str | Path) -> tuple[Path, dict]:

@@ -58,6 +58,8 @@ PARAMETERS: ParameterSpecs = {
     "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False, {}),
     "min_confidence": ("Robot-presence probability [0, 1] below which nothing is published for a frame.", False,
                        _PROBABILITY),
+    "fit": ("Fit the kinematic model to the detected 2D keypoints (false: the paper's feed-forward estimate).",
+            False, {}),
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
     "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
@@ -151,7 +153,8 @@ class EstimatorNode(Node):
             self.get_logger().info(f"preparing the ONNX Runtime graph: exported once per weights file (about 20 s), "
                                    f"then reused from {cache_dir()}")
         self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
-                                              tracking=p["tracking"], min_confidence=p["min_confidence"])
+                                              tracking=p["tracking"], min_confidence=p["min_confidence"],
+                                              fit=p["fit"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
             raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")
@@ -206,6 +209,8 @@ class EstimatorNode(Node):
             elif param.name == "tracking":
                 self.estimator.tracking = param.value
                 self.estimator.reset()
+            elif param.name == "fit":
+                self.estimator.fit = param.value
             elif param.name in ("publish_annotated", "publish_tf"):
                 setattr(self, param.name, param.value)
 

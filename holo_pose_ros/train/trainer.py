@@ -166,19 +166,16 @@ class Trainer:
 
     # -- the loop ------------------------------------------------------------------------------------------
     def validate(self) -> dict:
-        """Score the current network through the deployed estimator on the validation folder; with fit heatmaps
-        also the 2D error of its keypoint evidence (pixels of the 640 x 480 frame)."""
+        """Score the current network through the deployed estimator on the validation folder, with the 2D error of
+        its keypoint evidence (pixels of the 640 x 480 frame)."""
         from holo_pose_ros.data.dream import DreamReader
         from holo_pose_ros.estimator import Estimator
-        from holo_pose_ros.evaluation.detection import detection_errors
         from holo_pose_ros.evaluation.run import evaluate_folder
 
         self.net.eval()
         estimator = Estimator(self.net, self.robot, self.device)
         reader = DreamReader(self.validation_folder(), self.cfg["robot"])
         report, _, _ = evaluate_folder(estimator, reader, progress=False)
-        if self.model_cfg.fit_heatmaps:
-            report.update(detection_errors(estimator, reader))
         self.net.train()
         for module in self.frozen:
             module.eval()

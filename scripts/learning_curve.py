@@ -1,0 +1,115 @@
+"""Regenerate docs/learning_curve.png and the README's learning-curve table from the training logs.
+
+    python scripts/learning_curve.py            # docs/training_logs/*.csv -> docs/learning_curve.png + README table
+
+Each training run's `log.csv` (runs/<name>/log.csv) is copied into docs/training_logs/<name>.csv when its model
+ships, so the curve survives the run folder. One line per robot: validation median 2D error of the network's
+keypoints (pixels of the 640 x 480 frame; DREAM's and all fit keypoints) and validation ADD AUC through the
+deployed estimator, against cumulative training views and wall-clock training hours on the 2-core CPU; the
+shipped model's point is marked (its card's `training.cumulative_views`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import yaml  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+BEGIN, END = "<!-- learning-curve:begin -->", "<!-- learning-curve:end -->"
+
+
+def read_log(path: Path) -> list[dict]:
+    """Rows of a training log with a validation 2D error, numbers as floats (None where empty)."""
+    rows = []
+    with open(path) as f:
+        for row in csv.DictReader(f):
+            parsed = {k: _number(v) for k, v in row.items()}
+            if parsed.get("val_kp2d_fit_median_px") is not None and parsed.get("views") is not None:
+                rows.append(parsed)
+    return rows
+
+
+def _number(value: str | None):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return value or None
+
+
+def shipped_point(robot: str) -> dict | None:
+    """(views, validation 2D error, AUC) of the shipped model of `robot`, from its card."""
+    card = ROOT / "holo_pose_ros" / "weights" / f"{robot}.yaml"
+    if not card.exists():
+        return None
+    data = yaml.safe_load(card.read_text())
+    training, validation = data.get("training") or {}, data.get("validation") or {}
+    if "kp2d_fit_median_px" not in validation:
+        return None
+    return {"views": training.get("cumulative_views"), "hours": training.get("cumulative_train_hours"),
+            "fit": validation["kp2d_fit_median_px"], "dream": validation.get("kp2d_dream_median_px"),
+            "auc": validation.get("add_auc")}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--logs", default=str(ROOT / "docs" / "training_logs"), help="folder of <run>.csv logs")
+    parser.add_argument("--out", default=str(ROOT / "docs" / "learning_curve.png"))
+    parser.add_argument("--readme", default=str(ROOT / "README.md"))
+    args = parser.parse_args()
+    runs = {p.stem: read_log(p) for p in sorted(Path(args.logs).glob("*.csv"))}
+    runs = {name: rows for name, rows in runs.items() if rows}
+    if not runs:
+        raise SystemExit(f"no training logs with a 2D validation in {args.logs}")
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC |", "|---|---|---|---|---|---|"]
+    for name, rows in runs.items():
+        robot = name.split("_")[0]
+        views = [r["views"] / 1e3 for r in rows]
+        hours = [r.get("train_hours") or math.nan for r in rows]
+        axes[0].plot(views, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=f"{name}: fit keypoints")
+        axes[0].plot(views, [r["val_kp2d_dream_median_px"] for r in rows], "--", label=f"{name}: DREAM keypoints")
+        axes[1].plot(hours, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=name)
+        axes[2].plot(views, [r.get("val_add_auc") or 0.0 for r in rows], "-o", ms=3, label=name)
+        point = shipped_point(robot)
+        if point and point["views"]:
+            axes[0].plot([point["views"] / 1e3], [point["fit"]], "k*", ms=14, label=f"shipped {robot}")
+            if point.get("hours"):
+                axes[1].plot([point["hours"]], [point["fit"]], "k*", ms=14)
+        last = rows[-1]
+        best = min(rows, key=lambda r: r["val_kp2d_fit_median_px"])
+        for r, tag in ((best, "best"), (last, "last")):
+            table.append(f"| {name} ({tag}) | {robot} | {int(r['views']):,} | {r.get('train_hours') or math.nan:.2f} | "
+                         f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
+                         f"{(r.get('val_add_auc') or 0.0):.1f} |")
+    axes[0].set(xlabel="training views (thousands, cumulative)", ylabel="validation median 2D error (px, 640x480)",
+                yscale="log", title="2D keypoint error vs views")
+    axes[1].set(xlabel="wall-clock training hours (2-core CPU)", ylabel="fit keypoints, median px", yscale="log",
+                title="2D keypoint error vs time")
+    axes[2].set(xlabel="training views (thousands)", ylabel="ADD AUC (%)", title="validation AUC (deployed estimator)")
+    for ax in axes:
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+    readme = Path(args.readme)
+    text = readme.read_text()
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        _, tail = rest.split(END, 1)
+        readme.write_text(head + BEGIN + "\n" + "\n".join(table) + "\n" + END + tail)
+        print(f"updated the table in {readme}")
+    print("\n".join(table))
+
+
+if __name__ == "__main__":
+    main()
