@@ -308,7 +308,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
              camera_info_topic: str | None = None, device: str = "cpu", min_confidence: float | None = None,
              tracking: bool = False, storage: str = "mcap", ground_truth_ns: str = GROUND_TRUTH_NS,
              estimates_ns: str = ESTIMATOR_NS, use_rectified_p: bool = False, limit: int | None = None,
-             backend: str = "torch", fit: bool = True,
+             backend: str = "torch", fit: bool | None = None,
              progress: bool = True) -> BagEvalSummary:
     """Estimate every Image of the bag (log-time order) with the latest CameraInfo (the one with the same stamp
     when there is one) and write the estimates (found frames) into the new bag `out` under `estimates_ns`, with

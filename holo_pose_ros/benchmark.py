@@ -45,7 +45,7 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
-              threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool = True) -> dict:
+              threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool | None = None) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
     Tracking needs a stream: each frame is then held for TRACKING_HOLD frames (a camera watching a slow arm)."""
     if threads:
@@ -87,7 +87,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),
-        "backend": backend, "fit": fit,
+        "backend": backend, "fit": estimator.fit,
     }
 
 

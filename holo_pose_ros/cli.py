@@ -65,7 +65,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
 
     estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking,
-                                     fit=not args.no_fit)
+                                     fit=args.fit)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     if args.ablation:
         reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet)
@@ -107,7 +107,7 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
     summary = bag_eval(args.bag, args.model, args.out, image_topic=args.image_topic,
                        camera_info_topic=args.info_topic, device=args.device, min_confidence=args.min_confidence,
                        tracking=args.tracking, storage=args.storage, use_rectified_p=args.use_rectified_p,
-                       backend=args.backend, fit=not args.no_fit,
+                       backend=args.backend, fit=args.fit,
                        limit=args.limit, progress=not args.quiet)
     print(f"{summary.n_images} images: {summary.n_found} found, {summary.n_not_found} not found, "
           f"{summary.n_skipped} skipped; estimates: {summary.out}")
@@ -125,7 +125,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from holo_pose_ros.benchmark import benchmark, format_benchmark
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
-                       threads=args.threads, backend=args.backend, fit=not args.no_fit)
+                       threads=args.threads, backend=args.backend, fit=args.fit)
     print(format_benchmark(result))
     if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
@@ -201,7 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="DREAM folder")
     e.add_argument("--known-joints", action="store_true", help="use the true joints (camera-to-robot calibration)")
     e.add_argument("--tracking", action="store_true", help="crop from the previous frame (for video sequences)")
-    e.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
+    e.add_argument("--fit", action=argparse.BooleanOptionalAction, default=None,
+                   help="kinematic fit to the detected keypoints; --no-fit: the paper's feed-forward estimate "
+                        "(default: the model card's validated choice)")
     e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
                                                          "lifter, fitted, and fitted with the true joints")
     e.add_argument("--out", default=None, help="report.json path")
@@ -242,7 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--limit", type=int, default=None, help="only the first N images")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     b.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
-    b.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
+    b.add_argument("--fit", action=argparse.BooleanOptionalAction, default=None,
+                   help="kinematic fit to the detected keypoints; --no-fit: the paper's feed-forward estimate "
+                        "(default: the model card's validated choice)")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_cmd_bag_eval)
 
@@ -252,7 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--frames", type=int, default=100, help="timed frames (after 5 untimed warm-up frames)")
     m.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     m.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
-    m.add_argument("--no-fit", action="store_true", help="the paper's feed-forward estimate (no kinematic fit)")
+    m.add_argument("--fit", action=argparse.BooleanOptionalAction, default=None,
+                   help="kinematic fit to the detected keypoints; --no-fit: the paper's feed-forward estimate "
+                        "(default: the model card's validated choice)")
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")

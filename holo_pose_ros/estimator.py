@@ -62,14 +62,16 @@ class Estimator:
     """Holistic robot pose from raw RGB images. `tracking` reuses the previous frame's fitted keypoints for the
     crop (one network pass a frame) and its pose as one more start of the fit; it re-localizes when the robot is
     lost. `fit` (default) fits the kinematic model to the detected 2D keypoints from every start (paper heads,
-    `lifter` hypotheses, previous frame); `fit=False` gives the paper's feed-forward estimate. Keypoints below
+    `lifter` hypotheses, previous frame); `fit=False` gives the paper's feed-forward estimate; `fit=None` (auto)
+    fits when the network has fit heatmaps and a lifter is loaded (`from_model`: the model card's validated
+    choice, `estimator.fit`, when it has one). Keypoints below
     `min_keypoint_confidence` do not count in the fit. The estimate's confidence is the presence probability times
     the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
     so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
-                 backend: str = "torch", fit: bool = True, lifter=None, fit_config: dict | str | None = None,
+                 backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1):
         from holo_pose_ros.fitting import Fitter
 
@@ -80,7 +82,9 @@ class Estimator:
         self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
         self.size = net.cfg.input_size
         self.min_confidence, self.tracking = min_confidence, tracking
-        self.fit, self.lifter = fit, lifter
+        self.lifter = lifter
+        self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
+        self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence = min_keypoint_confidence
         self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
@@ -96,6 +100,9 @@ class Estimator:
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, card = load_model(model, device)
+        validated = (card.get("estimator") or {}).get("fit")
+        if kwargs.get("fit") is None and validated is not None:  # the method the card's validation chose
+            kwargs["fit"] = bool(validated)
         if "lifter" in card and "lifter" not in kwargs:
             from holo_pose_ros.model.lifter import load_lifter
             from holo_pose_ros.model.weights import resolve_model

@@ -17,6 +17,7 @@ import math
 from pathlib import Path
 
 import matplotlib
+import matplotlib.ticker
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -89,11 +90,14 @@ def main() -> None:
             table.append(f"| {name} ({tag}) | {robot} | {int(r['views']):,} | {r.get('train_hours') or math.nan:.2f} | "
                          f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
                          f"{(r.get('val_add_auc') or 0.0):.1f} |")
-    axes[0].set(xlabel="training views (thousands, cumulative)", ylabel="validation median 2D error (px, 640x480)",
+    axes[0].set(xlabel="training views (thousands, cumulative: the warm-start model's included)", ylabel="validation median 2D error (px, 640x480)",
                 yscale="log", title="2D keypoint error vs views")
     axes[1].set(xlabel="wall-clock training hours (2-core CPU)", ylabel="fit keypoints, median px", yscale="log",
                 title="2D keypoint error vs time")
     axes[2].set(xlabel="training views (thousands)", ylabel="ADD AUC (%)", title="validation AUC (deployed estimator)")
+    for ax in axes[:2]:  # plain numbers on the log axes
+        ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.0f"))
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)

@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test", action="append", required=True, help="DIR:LOOK of a held-out DREAM folder")
     parser.add_argument("--lifter", default=None, help="lifter card to ship with the model (holo-pose train-lifter)")
     parser.add_argument("--log", default=None, help="the run's log.csv, kept as docs/training_logs/<run>.csv")
+    parser.add_argument("--validation", default=None, help="generated validation folder (never a test set) on which "
+                                                           "the ablation chooses the default: fitted or feed-forward")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
     lifter = load_lifter(args.lifter) if args.lifter else None
@@ -48,15 +50,26 @@ def main(argv: list[str] | None = None) -> int:
                                   dtype=torch.float16)
         extra["lifter"] = lifter_card.name
         lifter = load_lifter(lifter_card)  # score what ships (float16)
+    if lifter is not None and args.validation:
+        ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), DreamReader(args.validation, robot),
+                                    known_joints=False)
+        print(f"validation {args.validation}:\n{format_ablation(ablation)}")
+        score = {m: (r["add_auc"], -(r["add_mean_mm"] or float("inf"))) for m, r in ablation.items()}
+        extra["estimator"] = {"fit": bool(score["fitted"] >= score["feed-forward"]), "chosen_on": args.validation,
+                              "validation": {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
+                                             for m, r in ablation.items()}}
+        print(f"default: {'fitted' if extra['estimator']['fit'] else 'feed-forward'}")
+    fit = extra.get("estimator", {}).get("fit")
     metrics = {}
     for item in args.test:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit)
         report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
             "command": f"holo-pose evaluate --model {args.name} --data {folder} --out report.json",
+            "method": "fitted" if estimator.fit else "feed-forward",
             **{k: report[k] for k in KEPT if k in report},
         }
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "

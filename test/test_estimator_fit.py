@@ -20,12 +20,21 @@ def frames(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def estimator():
-    return Estimator.from_model("panda", min_confidence=0.0)
+    return Estimator.from_model("panda", min_confidence=0.0, fit=True)
 
 
 def test_the_shipped_panda_model_has_heatmaps_and_a_lifter(estimator):
     assert estimator.lifter is not None and estimator.net.cfg.fit_heatmaps
     assert estimator.lifter.robot.n_fit_keypoints == estimator.robot.n_fit_keypoints
+
+
+def test_the_default_method_is_the_one_the_card_validated():
+    from holo_pose_ros.model.weights import read_card
+
+    validated = read_card("panda")[1]["estimator"]
+    assert Estimator.from_model("panda").fit == validated["fit"]
+    assert Estimator.from_model("panda", fit=not validated["fit"]).fit == (not validated["fit"])
+    assert set(validated["validation"]) >= {"feed-forward", "lifter", "fitted"}
 
 
 def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames):
@@ -53,14 +62,14 @@ def test_known_joints_fit_only_the_pose(estimator, frames):
 def test_fit_false_gives_the_feed_forward_estimate(frames):
     image, frame = frames[1]
     plain = Estimator.from_model("panda", min_confidence=0.0, fit=False).estimate(image, frame.K)
-    ff = Estimator.from_model("panda", min_confidence=0.0).estimate_methods(image, frame.K, None, ("feed-forward",))
+    ff = Estimator.from_model("panda", min_confidence=0.0, fit=True).estimate_methods(image, frame.K, None, ("feed-forward",))
     np.testing.assert_allclose(plain.joints, ff["feed-forward"].joints)
     np.testing.assert_allclose(plain.T_cam_base, ff["feed-forward"].T_cam_base)
     assert plain.fit_rms_px is None and "fit" not in plain.timings_ms
 
 
 def test_tracking_starts_the_fit_from_the_previous_frame(frames):
-    estimator = Estimator.from_model("panda", min_confidence=0.0, tracking=True)
+    estimator = Estimator.from_model("panda", min_confidence=0.0, tracking=True, fit=True)
     image, frame = frames[2]
     first = estimator.estimate(image, frame.K)
     second = estimator.estimate(image, frame.K)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
@@ -26,6 +26,7 @@ from visualization_msgs.msg import MarkerArray
 from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.weights import read_card
 from holo_pose_ros.visualization import draw_skeleton
 from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
                           rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
@@ -56,14 +57,25 @@ PARAMETERS: ParameterSpecs = {
     "base_frame_id": ("Child frame of ~/transform and /tf (parent: the image's frame_id). Empty: "
                       "<robot>_base_link.", True, {}),
     "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False, {}),
-    "min_confidence": ("Robot-presence probability [0, 1] below which nothing is published for a frame.", False,
+    "min_confidence": ("Estimate confidence [0, 1] (presence x fit quality) below which nothing is published.", False,
                        _PROBABILITY),
-    "fit": ("Fit the kinematic model to the detected 2D keypoints (false: the paper's feed-forward estimate).",
-            False, {}),
+    "fit": ("auto | true | false: fit the kinematic model to the detected 2D keypoints (false: the paper's "
+            "feed-forward estimate; auto: the model card's validated choice).", False, {}),
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
     "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
 }
+
+FIT_MODES = {"auto": None, "true": True, "false": False}
+
+
+def _fit_mode(value: str) -> bool | None:
+    """The `fit` parameter as the estimator's argument (None: auto)."""
+    mode = str(value).strip().lower()
+    if mode not in FIT_MODES:
+        raise ValueError(f"fit must be one of {', '.join(FIT_MODES)}, got {value!r}")
+    return FIT_MODES[mode]
+
 
 def resolve_device(device: str) -> tuple[str, str | None]:
     """(torch device, warning or None) for 'auto', 'cpu', 'cuda' or 'cuda:N'; CPU when CUDA is unavailable."""
@@ -154,7 +166,7 @@ class EstimatorNode(Node):
                                    f"then reused from {cache_dir()}")
         self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
                                               tracking=p["tracking"], min_confidence=p["min_confidence"],
-                                              fit=p["fit"])
+                                              fit=_fit_mode(p["fit"]))
         robot = self.estimator.robot
         if robot.name != p["robot"]:
             raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")
@@ -167,6 +179,9 @@ class EstimatorNode(Node):
                                      ("keypoint_names", robot.keypoint_names, "~/keypoints and ~/keypoints_2d")]:
             descriptor = ParameterDescriptor(description=f"Order of {outputs} (from the robot YAML).", read_only=True)
             self.declare_parameter(name, value, descriptor, ignore_override=True)
+        self._validated_fit = self.estimator.fit if _fit_mode(p["fit"]) is None else bool(
+            (read_card(p["model"])[1].get("estimator") or {}).get("fit", self.estimator.auto_fit))
+        self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self.stats = Stats()
@@ -201,6 +216,16 @@ class EstimatorNode(Node):
             f"{self._info_sub.topic_name} (best effort, depth 1); publishing under {self.get_fully_qualified_name()}/")
 
     # -- parameters and logging ------------------------------------------------------------------------------
+    def _check_parameters(self, parameters: list) -> SetParametersResult:
+        """Refuse values the descriptors cannot express (the `fit` mode)."""
+        for param in parameters:
+            if param.name == "fit":
+                try:
+                    _fit_mode(param.value)
+                except ValueError as e:
+                    return SetParametersResult(successful=False, reason=str(e))
+        return SetParametersResult(successful=True)
+
     def _apply_parameters(self, parameters: list) -> None:
         """Apply the live parameters (the others are read-only; ranges are checked by their descriptors)."""
         for param in parameters:
@@ -210,7 +235,8 @@ class EstimatorNode(Node):
                 self.estimator.tracking = param.value
                 self.estimator.reset()
             elif param.name == "fit":
-                self.estimator.fit = param.value
+                mode = _fit_mode(param.value)
+                self.estimator.fit = self._validated_fit if mode is None else mode
             elif param.name in ("publish_annotated", "publish_tf"):
                 setattr(self, param.name, param.value)
 
