@@ -65,14 +65,15 @@ class Estimator:
     `lifter` hypotheses, previous frame); `fit=False` gives the paper's feed-forward estimate; `fit=None` (auto)
     fits when the network has fit heatmaps and a lifter is loaded (`from_model`: the model card's validated
     choice, `estimator.fit`, when it has one). Keypoints below
-    `min_keypoint_confidence` do not count in the fit. The estimate's confidence is the presence probability times
+    `min_keypoint_confidence` do not count in the fit; the `lifter_starts` lifter hypotheses that best explain the
+    keypoints start it. The estimate's confidence is the presence probability times
     the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
     so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
-                 min_keypoint_confidence: float = 0.1):
+                 min_keypoint_confidence: float = 0.1, lifter_starts: int = 2):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -85,7 +86,7 @@ class Estimator:
         self.lifter = lifter
         self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
         self.fit = self.auto_fit if fit is None else fit
-        self.min_keypoint_confidence = min_keypoint_confidence
+        self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
         self._previous_hint: np.ndarray | None = None  # (M, 2) pixels: the previous fit's keypoints
@@ -227,14 +228,14 @@ class Estimator:
         weights = np.where(detection.confidence >= self.min_keypoint_confidence, detection.confidence, 0.0)
         hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
             "lifter" in methods or "fitted" in methods) else None
-        if "lifter" in methods and hypotheses is not None:
-            costs = self.fitter.cost(detection.uv, weights, K, hypotheses[0], hypotheses[1])
-            best = int(np.argmin(costs))
-            poses["lifter"] = (hypotheses[0][best], hypotheses[1][best], None)
+        if hypotheses is not None:  # best first, by reprojection cost
+            order = np.argsort(self.fitter.cost(detection.uv, weights, K, hypotheses[0], hypotheses[1]), kind="stable")
+            hypotheses = hypotheses[0][order], hypotheses[1][order]
+            poses["lifter"] = (hypotheses[0][0], hypotheses[1][0], None)
         if "fitted" in methods:
             q0, T0 = [ff["joints"][None]], [ff["T_cam_base"][None]]
-            if hypotheses is not None:
-                q0.append(hypotheses[0]); T0.append(hypotheses[1])
+            if hypotheses is not None:  # the `lifter_starts` best hypotheses: each start costs about 0.5 ms of fit
+                q0.append(hypotheses[0][:self.lifter_starts]); T0.append(hypotheses[1][:self.lifter_starts])
             if tracked and previous.joints is not None:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()

@@ -47,7 +47,8 @@ def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames)
                                       np.stack([fitted.T_cam_base, ff.T_cam_base, r["lifter"].T_cam_base]))
         assert costs[0] <= costs[1] + 1e-6 and costs[0] <= costs[2] + 1e-6
         lower, upper = estimator.robot.lower.cpu().numpy(), estimator.robot.upper.cpu().numpy()
-        assert (fitted.joints >= lower - 1e-9).all() and (fitted.joints <= upper + 1e-9).all()
+        # the limits are float32 here, float64 in the fit: equal to within float32 rounding
+        assert (fitted.joints >= lower - 1e-6).all() and (fitted.joints <= upper + 1e-6).all()
         assert "fit" in fitted.timings_ms and "lifter" in fitted.timings_ms
 
 

@@ -195,7 +195,8 @@ class Trainer:
         self.net.train()
         for module in self.frozen:
             module.eval()
-        net = torch.nn.parallel.DistributedDataParallel(self.net) if self.distributed else self.net
+        # a stage may leave heads out of its loss (e.g. no heatmap term): DDP must not wait for their gradients
+        net = torch.nn.parallel.DistributedDataParallel(self.net, find_unused_parameters=True) if self.distributed else self.net
         log_path = self.out / "log.csv"
         bar = tqdm(total=self.total_steps, initial=self.step, desc="train", unit="step", disable=self.rank != 0 or not self.progress)
         kept = self.out / "best.yaml" if self.best_auc >= 0 else None
