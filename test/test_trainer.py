@@ -95,3 +95,22 @@ def test_two_process_ddp_run_with_torchrun(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "ddp" / "log.csv")))
     assert [int(r["step"]) for r in rows] == [2]                              # one writer
     assert (tmp_path / "ddp" / "best.yaml").exists() and result.stdout.count("kept model:") == 1
+
+
+def test_cumulative_views_continue_the_campaign_and_survive_a_resume(tmp_path):
+    """A run warm-started from a card counts that card's views; resuming it does not count them again, even when
+    the card it started from has since been replaced (a campaign ships each run over its own warm-start card)."""
+    first = Trainer(tiny_config(tmp_path / "first"), device="cpu", progress=False).run()
+    before = yaml.safe_load(open(first))["training"]["cumulative_views"]
+    cfg = {**tiny_config(tmp_path / "second"), "init_from": str(first)}
+    cfg["stages"][1] = {**cfg["stages"][1], "steps": 2}
+    Trainer(cfg, device="cpu", progress=False).run()
+    card = yaml.safe_load(open(first))
+    card["training"]["cumulative_views"] = 10**6  # the shipped card now says more
+    yaml.safe_dump(card, open(first, "w"))
+    cfg["stages"][1]["steps"] = 4
+    Trainer(cfg, device="cpu", progress=False).run(resume=True)
+    rows = list(csv.DictReader(open(tmp_path / "second" / "log.csv")))
+    assert [int(float(r["views"])) for r in rows] == [before + int(r["step"]) * 4 for r in rows]
+    hours = [float(r["train_hours"]) for r in rows]
+    assert hours == sorted(hours) and hours[-1] < 1.0

@@ -141,7 +141,8 @@ class Trainer:
     def save_checkpoint(self, optimizer) -> None:
         torch.save({"net": self.net.state_dict(), "optimizer": optimizer.state_dict(), "step": self.step,
                     "stage_index": self.stage_index, "best_auc": self.best_auc, "best_add_mm": self.best_add_mm,
-                    "best_kp2d_px": self.best_kp2d_px, "hours": self._train_hours() - self.hours_before},
+                    "best_kp2d_px": self.best_kp2d_px, "hours": self._train_hours() - self.hours_before,
+                    "views_before": self.views_before, "hours_before": self.hours_before},
                    self.out / "last.pt")
 
     def load_checkpoint(self) -> dict | None:
@@ -154,6 +155,9 @@ class Trainer:
         self.best_add_mm = state.get("best_add_mm", math.inf)
         self.best_kp2d_px = state.get("best_kp2d_px", math.inf)
         self.hours_this_run, self._clock = state.get("hours", 0.0), time.perf_counter()
+        # what the campaign had seen when this run started (init_from may since name this run's own shipped card)
+        self.views_before = state.get("views_before", self.views_before)
+        self.hours_before = state.get("hours_before", self.hours_before)
         return state
 
     def _train_hours(self) -> float:
