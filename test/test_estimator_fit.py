@@ -43,10 +43,12 @@ def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames)
         fitted, ff = r["fitted"], r["feed-forward"]
         assert fitted.found and ff.found and fitted.fit_rms_px is not None and np.isfinite(fitted.fit_rms_px)
         w = np.where(fitted.detected_confidence >= estimator.min_keypoint_confidence, fitted.detected_confidence, 0.0)
-        costs = estimator.fitter.cost(fitted.detected_2d, w, frame.K, np.stack([fitted.joints, ff.joints, r["lifter"].joints]),
-                                      np.stack([fitted.T_cam_base, ff.T_cam_base, r["lifter"].T_cam_base]))
-        assert costs[0] <= costs[1] + 1e-6 and costs[0] <= costs[2] + 1e-6
         lower, upper = estimator.robot.lower.cpu().numpy(), estimator.robot.upper.cpu().numpy()
+        # the paper's heads may leave the joint limits; the fit starts from their projection onto them
+        ff_q = np.clip(ff.joints, lower, upper)
+        costs = estimator.fitter.cost(fitted.detected_2d, w, frame.K, np.stack([fitted.joints, ff_q, r["lifter"].joints]),
+                                      np.stack([fitted.T_cam_base, ff.T_cam_base, r["lifter"].T_cam_base]))
+        assert costs[0] <= costs[1] * (1 + 1e-6) and costs[0] <= costs[2] * (1 + 1e-6)
         # the limits are float32 here, float64 in the fit: equal to within float32 rounding
         assert (fitted.joints >= lower - 1e-6).all() and (fitted.joints <= upper + 1e-6).all()
         assert "fit" in fitted.timings_ms and "lifter" in fitted.timings_ms

@@ -239,6 +239,7 @@ class Fitter:
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
         state = linearize(q, R, t)
+        start_state = state
         damping = np.full(S, float(cfg["damping_init"]))
         converged = np.zeros(S, bool)
         iterations = 0
@@ -271,6 +272,9 @@ class Fitter:
             if converged.all():
                 break
 
+        # the coarse-to-fine stages descend on subsets of the points: a start may end above where it began on all of
+        # them (seen on real detections); never return worse than the start itself
+        state = state.where((state.rho @ w) > (start_state.rho @ w), start_state)
         costs = (state.rho @ w) / W
         best = int(np.argmin(costs))
         return FitResult(state.q[best].copy(), self._matrices(state.R, state.t)[best], float(costs[best]),
