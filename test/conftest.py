@@ -17,6 +17,7 @@ os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="holo_pose_test_cache_")
 atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], True)
 
 import pytest  # noqa: E402
+import torch  # noqa: E402
 
 from small_model import save_small_model  # noqa: E402
 
@@ -25,3 +26,12 @@ from small_model import save_small_model  # noqa: E402
 def small_model_card(tmp_path_factory):
     """Model card of the small untrained Panda network (test/small_model.py), built once per test session."""
     return save_small_model(tmp_path_factory.mktemp("small_model"))
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One torch thread for a test (its CPU budget on two cores), restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

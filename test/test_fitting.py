@@ -31,13 +31,7 @@ from holo_pose_ros.robots.spec import load_robot_spec
 ROBOTS = ["panda", "kuka", "baxter"]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Single-threaded torch (the RobotModel reference), restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -29,13 +29,7 @@ SMALL = {"model": {"hidden": 256, "depth": 2, "hypotheses": 2},
 SMALL_STEPS = 700
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread (the tests' CPU budget), restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 @pytest.fixture(scope="module")

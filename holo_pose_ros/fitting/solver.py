@@ -18,7 +18,6 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from holo_pose_ros.fitting.kinematic_tree import KinematicTree
 from holo_pose_ros.fitting.residuals import (
@@ -28,7 +27,7 @@ from holo_pose_ros.fitting.residuals import (
     robust_weights,
     so3_exp,
 )
-from holo_pose_ros.resources import config_dir
+from holo_pose_ros.resources import config_with_overrides
 from holo_pose_ros.robots.kinematics import RobotModel
 
 
@@ -50,16 +49,7 @@ class FitResult:
 def load_fitting_config(config: dict | str | Path | None = None) -> dict:
     """config/fitting.yaml's defaults, overridden by `config` (a dict, or the path of a YAML file of the same
     keys); unknown keys and unknown losses are errors."""
-    with open(config_dir() / "fitting.yaml") as f:
-        cfg = yaml.safe_load(f)
-    if config is not None:
-        if not isinstance(config, dict):
-            with open(config) as f:
-                config = yaml.safe_load(f) or {}
-        unknown = set(config) - set(cfg)
-        if unknown:
-            raise ValueError(f"unknown fitting parameters {sorted(unknown)}; known: {', '.join(sorted(cfg))}")
-        cfg.update(config)
+    cfg = config_with_overrides("fitting.yaml", config, "fitting parameters")
     if cfg["robust_loss"] not in ROBUST_LOSSES:
         raise ValueError(f"robust_loss '{cfg['robust_loss']}' is not one of {', '.join(ROBUST_LOSSES)}")
     return cfg

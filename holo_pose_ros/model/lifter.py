@@ -9,7 +9,6 @@ coordinates (geometry/crop.py); metres, radians. Weights are data: a safetensors
 
 from __future__ import annotations
 
-import copy
 import hashlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,7 +19,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from holo_pose_ros.geometry.rotation import rot6d_to_matrix
-from holo_pose_ros.resources import config_dir, weights_dir
+from holo_pose_ros.resources import config_with_overrides, weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 
 COORD_CLAMP = 4.0  # box-normalized coordinates beyond this (far outside the box) are clipped: wild detections
@@ -28,28 +27,10 @@ EXTRA_FEATURES = 5  # ray (3), log box scale, fraction of kept points
 
 
 # -- configuration ---------------------------------------------------------------------------------------------
-def _merge(base: dict, override: dict) -> dict:
-    """Deep merge of `override` into a copy of `base` (nested mappings merged, everything else replaced)."""
-    out = copy.deepcopy(base)
-    for k, v in (override or {}).items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
-    return out
-
-
 def load_lifter_config(config: str | Path | dict | None = None) -> dict:
     """The lifter config: config/lifter.yaml (every default, documented) with `config` (a path or a mapping of
     overrides) merged over it."""
-    with open(config_dir() / "lifter.yaml") as f:
-        defaults = yaml.safe_load(f)
-    if config is None:
-        return defaults
-    if not isinstance(config, dict):
-        with open(config) as f:
-            config = yaml.safe_load(f) or {}
-    unknown = set(config) - set(defaults)
-    if unknown:
-        raise ValueError(f"lifter config: unknown sections {sorted(unknown)}; known: {sorted(defaults)}")
-    return _merge(defaults, config)
+    return config_with_overrides("lifter.yaml", config, "lifter config sections")
 
 
 @dataclass(frozen=True)
