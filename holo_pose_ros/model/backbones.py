@@ -1,5 +1,7 @@
 """Image backbones: a module mapping (B, 3, S, S) normalized images to (B, C, S/32, S/32) features, with the
-input normalization its pretrained weights expect. Pretrained weights only come from installed packages."""
+input normalization its pretrained weights expect, and `pyramid`: those features plus the last feature map at
+strides 16, 8 and 4 (the skip connections of the heatmap head). Pretrained weights only come from installed
+packages."""
 
 from __future__ import annotations
 
@@ -14,6 +16,10 @@ class BackboneInfo:
     channels: int               # feature channels at stride 32
     mean: tuple[float, float, float]   # input normalization, on [0, 1] RGB
     std: tuple[float, float, float]
+    skip_channels: tuple[int, int, int]  # channels of `pyramid`'s maps at strides 16, 8, 4
+
+
+SKIP_STRIDES = (16, 8, 4)
 
 
 class EfficientNetLite(nn.Module):
@@ -29,10 +35,28 @@ class EfficientNetLite(nn.Module):
             self.net.load_state_dict(torch.load(_lite_weights_path(variant), map_location="cpu", weights_only=True))
         self.net._fc = nn.Identity()  # classification head unused
         self.net._dropout = nn.Identity()
-        self.info = BackboneInfo(self.net._conv_head.out_channels, (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
+        self._stride_ends, stride = {}, 2          # the last block at each stride, and its output channels
+        for i, block in enumerate(self.net._blocks):
+            s = block._block_args.stride
+            stride *= s[0] if isinstance(s, (list, tuple)) else s
+            self._stride_ends[stride] = (i, block._block_args.output_filters)
+        self.info = BackboneInfo(self.net._conv_head.out_channels, (0.5, 0.5, 0.5), (0.5, 0.5, 0.5),
+                                 tuple(self._stride_ends[k][1] for k in SKIP_STRIDES))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net.extract_features(x)
+
+    def pyramid(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The stride-32 features and the maps at strides 16, 8, 4 (the same computation as `forward`)."""
+        net = self.net
+        x = net._swish(net._bn0(net._conv_stem(x)))
+        ends, skips = {self._stride_ends[k][0]: k for k in SKIP_STRIDES}, {}
+        rate = net._global_params.drop_connect_rate
+        for i, block in enumerate(net._blocks):
+            x = block(x, drop_connect_rate=rate * i / len(net._blocks) if rate else rate)
+            if i in ends:
+                skips[ends[i]] = x
+        return net._swish(net._bn1(net._conv_head(x))), [skips[k] for k in SKIP_STRIDES]
 
 
 def _lite_weights_path(variant: int) -> str:
@@ -72,17 +96,31 @@ class ResNet50(nn.Module):
         super().__init__()
         if pretrained:
             raise ValueError("no ImageNet ResNet-50 weights are available offline; set pretrained: false")
-        layers, cin = [], 64
+        stages, cin = [], 64
         for width, blocks, stride in [(64, 3, 1), (128, 4, 2), (256, 6, 2), (512, 3, 2)]:
+            layers = []
             for i in range(blocks):
                 layers.append(_Bottleneck(cin, width, stride if i == 0 else 1))
                 cin = width * 4
+            stages.append(layers)
         self.net = nn.Sequential(
-            nn.Conv2d(3, 64, 7, 2, 3, bias=False), nn.BatchNorm2d(64), nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1), *layers)
-        self.info = BackboneInfo(2048, (0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
+            nn.Conv2d(3, 64, 7, 2, 3, bias=False), nn.BatchNorm2d(64), nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1),
+            *[layer for layers in stages for layer in layers])
+        ends = [3 + sum(len(layers) for layers in stages[:k + 1]) for k in range(3)]   # strides 4, 8, 16
+        self._skip_ends = {ends[2]: 16, ends[1]: 8, ends[0]: 4}
+        self.info = BackboneInfo(2048, (0.485, 0.456, 0.406), (0.229, 0.224, 0.225), (1024, 512, 256))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
+
+    def pyramid(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The stride-32 features and the maps at strides 16, 8, 4."""
+        skips = {}
+        for i, layer in enumerate(self.net):
+            x = layer(x)
+            if i in self._skip_ends:
+                skips[self._skip_ends[i]] = x
+        return x, [skips[k] for k in SKIP_STRIDES]
 
 
 def build_backbone(name: str, pretrained: bool = True) -> nn.Module:

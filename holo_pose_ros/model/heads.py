@@ -41,10 +41,14 @@ class KeypointHead(nn.Module):
     """KeypointNet: deconvolutions to an N x D x H x W volume per image, softmax over each keypoint's volume,
     and soft-argmax -> (u, v) in crop pixels and root-relative depth dz in metres. With `n_fit` > 0, a second
     1x1 convolution of the same deconvolved features gives 2D heatmaps (H x W logits) of the robot's fit
-    keypoints, decoded to sub-pixel positions and confidences (model/heatmaps.py)."""
+    keypoints, decoded to sub-pixel positions and confidences (model/heatmaps.py). With `skip_channels` (the
+backbone's maps at strides 16, 8, 4), each deconvolution's output gains a 1x1 projection of the map of its
+resolution (skip connections, a small FPN: finer evidence than the 6 x 6 stride-32 map). The projections start
+at zero, so a network warm-started without them computes the same function at first."""
 
     def __init__(self, channels: int, n_keypoints: int, crop_size: int, size: int = 64, depth_bins: int = 64,
-                 deconv_channels: int = 256, depth_range_m: float = 1.3, n_fit: int = 0):
+                 deconv_channels: int = 256, depth_range_m: float = 1.3, n_fit: int = 0,
+                 skip_channels: tuple[int, ...] = ()):
         super().__init__()
         layers, cin, res = [], channels, crop_size // 32
         while res < size:
@@ -53,14 +57,23 @@ class KeypointHead(nn.Module):
         if res != size:
             raise ValueError(f"heatmap size {size} must be crop_size/32 * 2^k (crop {crop_size})")
         self.deconv = nn.Sequential(*layers)
+        self.skips = nn.ModuleList(nn.Conv2d(c, deconv_channels, 1) for c in skip_channels[:len(layers) // 3])
+        for conv in self.skips:
+            nn.init.zeros_(conv.weight)
+            nn.init.zeros_(conv.bias)
         self.out = nn.Conv2d(cin, n_keypoints * depth_bins, 1)
         self.fit_out = nn.Conv2d(cin, n_fit, 1) if n_fit else None
         self.n, self.d, self.size, self.crop_size, self.depth_range = n_keypoints, depth_bins, size, crop_size, depth_range_m
 
-    def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(B, C, S/32, S/32) -> uv (B, N, 2) crop px, dz (B, N) m, confidence (B, N) in [0, 1]; with fit
-        heatmaps also heatmap_logits (B, M, H, W), fit_uv (B, M, 2) crop px and fit_confidence (B, M)."""
-        deconvolved = self.deconv(features)
+    def forward(self, features: torch.Tensor, skips: list[torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """(B, C, S/32, S/32) (and the skip maps, finest last) -> uv (B, N, 2) crop px, dz (B, N) m, confidence
+        (B, N) in [0, 1]; with fit heatmaps also heatmap_logits (B, M, H, W), fit_uv (B, M, 2) crop px and
+        fit_confidence (B, M)."""
+        deconvolved = features
+        for k in range(len(self.deconv) // 3):
+            deconvolved = self.deconv[3 * k + 2](self.deconv[3 * k + 1](self.deconv[3 * k](deconvolved)))
+            if k < len(self.skips):
+                deconvolved = deconvolved + self.skips[k](skips[k])
         logits = self.out(deconvolved)
         B = logits.shape[0]
         prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, self.size, self.size)

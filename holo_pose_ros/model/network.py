@@ -36,6 +36,7 @@ class ModelConfig:
     dropout: float
     fit_heatmaps: bool = False      # 2D heatmaps of the robot's fit keypoints (older cards have none)
     heatmap_sigma: float = 1.0      # Gaussian target sigma, heatmap cells
+    skip_connections: bool = False  # the keypoint head also sees the backbone's stride-16/8/4 maps (older: no)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -75,7 +76,8 @@ class HolisticNet(nn.Module):
         self.depth_head = DepthHead(depth_info.channels)
         self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
                                           cfg.depth_bins, cfg.deconv_channels, spec.constants.get("keypoint_depth_range_m", 1.3),
-                                          robot.n_fit_keypoints if cfg.fit_heatmaps else 0)
+                                          robot.n_fit_keypoints if cfg.fit_heatmaps else 0,
+                                          info.skip_channels if cfg.skip_connections else ())
         lower, upper = robot.lower.float().cpu(), robot.upper.float().cpu()
         self.register_buffer("joint_mid", (lower + upper) / 2)
         self.register_buffer("joint_half", (upper - lower) / 2)
@@ -86,14 +88,17 @@ class HolisticNet(nn.Module):
         self.presence = nn.Linear(info.channels, 1)
 
     def forward(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
-        features = self.backbone((image - self.mean) / self.std)
+        if self.cfg.skip_connections:
+            features, skips = self.backbone.pyramid((image - self.mean) / self.std)
+        else:
+            features, skips = self.backbone((image - self.mean) / self.std), None
         pooled = features.mean((2, 3))
         if self.depth_backbone is None:
             depth_pooled = pooled
         else:
             depth_pooled = self.depth_backbone((image - self.depth_mean) / self.depth_std).mean((2, 3))
         depth = self.depth_head(depth_pooled, reference_depth(K_crop, self.cfg.input_size, self.reference_side_m))
-        kp = self.keypoint_head(features)
+        kp = self.keypoint_head(features, skips)
         root = torch.zeros_like(kp["dz"])
         root[:, self.root_index] = 1.0
         dz = kp["dz"] * (1.0 - root)                      # the root keypoint sits at depth d exactly
