@@ -281,3 +281,18 @@ def test_a_publisher_in_another_process_reaches_the_node(graphs, frame, tmp_path
 def test_main_exits_1_with_the_reason_when_the_model_cannot_be_loaded(capfd):
     assert main(["--ros-args", "-p", "model:=no_such_model"]) == 1
     assert "cannot start: no shipped model 'no_such_model'" in capfd.readouterr().err
+
+
+def test_a_found_frame_without_frame_id_after_a_not_found_one_is_published(graphs, frame):
+    """Regression: the 'not found' line (info) and the empty frame_id line (warning) came from one rclpy call
+    site, whose severity rclpy refuses to change: every later valid frame without a frame_id was lost."""
+    image, K = frame
+    g = graphs(min_confidence=1.0)
+    lost = header(5001)
+    assert g.spin_until(lambda: g.node.stats.not_found >= 1, image=rgb_to_image(image, lost),
+                        info=camera_info_msg(K, 320, 240, lost))
+    assert g.node.set_parameters([Parameter("min_confidence", value=0.0)])[0].successful
+    no_frame = Header(stamp=Time(sec=5002, nanosec=0), frame_id="")
+    assert g.spin_until(lambda: g.stamped("joint_states", 5002), image=rgb_to_image(image, no_frame),
+                        info=camera_info_msg(K, 320, 240, no_frame))
+    assert g.node.stats.errors["internal"] == 0

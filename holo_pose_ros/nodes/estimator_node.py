@@ -241,12 +241,19 @@ class EstimatorNode(Node):
                 setattr(self, param.name, param.value)
 
     def _log_throttled(self, key: str, text: str, level: str = "warning", detail: str = "") -> None:
-        """Log `text` unless `key` was logged with the same `detail` less than LOG_PERIOD_S ago."""
+        """Log `text` at `level` (info | warning) unless `key` was logged with the same `detail` less than
+        LOG_PERIOD_S ago."""
         now = time.monotonic()
         last_time, last_detail = self._last_logged.get(key, (-LOG_PERIOD_S, None))
         if detail != last_detail or now - last_time >= LOG_PERIOD_S:
             self._last_logged[key] = (now, detail)
-            getattr(self.get_logger(), level)(text)
+            # one call site per severity: rclpy refuses a call site whose severity changes between calls
+            if level == "info":
+                self.get_logger().info(text)
+            elif level == "warning":
+                self.get_logger().warning(text)
+            else:
+                raise ValueError(f"unknown log level {level!r}")
 
     def _error(self, kind: str, error: Exception) -> None:
         """Count an error of `kind` and log it (a new reason at once, a repeated one throttled); skip the input."""
