@@ -111,9 +111,9 @@ def test_a_short_training_run_lowers_the_loss(robot, views):
 
 def test_weights_round_trip_and_estimator(tmp_path, robot, views):
     net = HolisticNet(load_model_config(SMALL), robot).eval()
-    card = save_model(net, "panda", tmp_path / "small", {"note": "test"})
+    card = save_model(net, "panda", tmp_path / "small", {"training": {"note": "test"}})
     loaded, loaded_robot, meta = load_model(card)
-    assert meta["note"] == "test" and loaded_robot.name == "panda"
+    assert meta["training"]["note"] == "test" and loaded_robot.name == "panda"
     x, K = views[0]["image"][None], views[0]["K_crop"][None]
     with torch.no_grad():
         a, b = net(x, K), loaded(x, K)

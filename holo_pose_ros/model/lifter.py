@@ -15,10 +15,11 @@ from pathlib import Path
 
 import torch
 import yaml
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 
 from holo_pose_ros.geometry.rotation import rot6d_to_matrix
+from holo_pose_ros.model.weights import LIFTER_CARD_KEYS, ModelLoadError, check_card_keys, file_sha256, read_weights
 from holo_pose_ros.resources import config_with_overrides, weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -278,7 +279,7 @@ def save_lifter(lifter: Lifter, path: str | Path, card: dict | None = None, dtyp
     robot = lifter.robot
     state = {k: v.detach().to(dtype).cpu().contiguous() for k, v in lifter.state_dict().items()}
     save_file(state, str(weights), metadata={"robot": robot.name, "kind": "lifter"})
-    full = {"kind": "lifter", "robot": robot.name, "weights": weights.name,
+    full = {"kind": "lifter", "robot": robot.name, "weights": weights.name, "weights_sha256": file_sha256(weights),
             "fit_keypoints": {"count": robot.n_fit_keypoints, "hash": fit_keypoints_hash(robot)},
             "joints": list(robot.joint_names), "model": lifter.cfg.to_dict(), **(card or {})}
     card_path = path.parent / f"{path.name}.yaml"
@@ -291,20 +292,27 @@ def load_lifter(path_or_card: str | Path, device: str | torch.device = "cpu", ro
     """The lifter (eval mode, float32) of a card or weights path, or a shipped name. `robot` (default: the card's
     robot from its YAML) must have the fit keypoints and joints the lifter was trained for, else ValueError."""
     card_path = resolve_lifter(path_or_card)
-    with open(card_path) as f:
-        card = yaml.safe_load(f)
-    if card.get("kind") != "lifter":
-        raise ValueError(f"{card_path}: not a lifter card (kind: {card.get('kind')})")
+    try:
+        with open(card_path) as f:
+            card = yaml.safe_load(f)
+    except yaml.YAMLError as e:
+        raise ModelLoadError(f"{card_path}: not a valid YAML lifter card ({e})") from e
+    if not isinstance(card, dict) or card.get("kind") != "lifter":
+        raise ModelLoadError(f"{card_path}: not a lifter card (kind: {card.get('kind') if isinstance(card, dict) else None})")
+    check_card_keys(card_path, card, LIFTER_CARD_KEYS, ("robot", "weights", "fit_keypoints", "model"))
+    state = {k: v.float() for k, v in read_weights(card_path, card).items()}
     robot = robot or RobotModel(card["robot"], device=device)
     want, have = card["fit_keypoints"], {"count": robot.n_fit_keypoints, "hash": fit_keypoints_hash(robot)}
     if robot.name != card["robot"] or want["count"] != have["count"] or want["hash"] != have["hash"]:
-        raise ValueError(
+        raise ModelLoadError(
             f"{card_path}: this lifter was trained for robot '{card['robot']}' with {want['count']} fit keypoints "
             f"(hash {want['hash']}), but robot '{robot.name}' ({robot.spec.source_file}) now has {have['count']} "
             f"(hash {have['hash']}): its fit keypoints or joints changed; retrain with "
             f"`holo-pose train-lifter --robot {robot.name}`")
     lifter = Lifter(LifterConfig.from_dict(card["model"]), robot)
-    state = {k: v.float() for k, v in load_file(str(card_path.parent / card["weights"])).items()}
-    lifter.load_state_dict(state)
+    try:
+        lifter.load_state_dict(state)
+    except RuntimeError as e:
+        raise ModelLoadError(f"{card_path}: weights do not match the lifter ({str(e).splitlines()[0]})") from e
     lifter.card = card
     return lifter.to(device).eval()

@@ -1,16 +1,20 @@
 """Weights as data: a safetensors file (no pickle) plus a YAML model card beside it naming the robot, the network
-configuration, how it was trained and what it scored. `--model panda` resolves to the shipped card."""
+configuration, the weights' sha256, how it was trained and what it scored. `--model panda` resolves to the shipped
+card. Loading checks the card's keys, the weights' existence, hash, format and robot before building anything, and
+fails with one ModelLoadError naming the file and what is wrong."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+import hashlib
+from dataclasses import fields, replace
 from pathlib import Path
 
 import torch
 import yaml
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
-from holo_pose_ros.model.network import HolisticNet, load_model_config
+from holo_pose_ros.model.network import HolisticNet, ModelConfig, load_model_config
 from holo_pose_ros.resources import weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -34,11 +38,70 @@ def shipped_models() -> list[str]:
     return sorted(p.stem for p in weights_dir().glob("*.yaml") if not p.stem.endswith("_lifter"))
 
 
+class ModelLoadError(ValueError):
+    """A model or lifter card, or its weights, cannot be used; the message names the file and the reason."""
+
+
+# top-level keys of a model card (save_model, scripts/ship_model.py) and of a lifter card (model/lifter.py)
+MODEL_CARD_KEYS = {"robot", "weights", "weights_sha256", "model", "lifter", "estimator", "training", "validation",
+                   "test"}
+LIFTER_CARD_KEYS = {"kind", "robot", "weights", "weights_sha256", "fit_keypoints", "joints", "model", "training",
+                    "validation"}
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def read_card(model: str | Path) -> tuple[Path, dict]:
-    """(card path, card) of a shipped name or a card/weights path."""
+    """(card path, card) of a shipped name or a card/weights path; ModelLoadError when it is not a YAML mapping."""
     card_path = resolve_model(model)
-    with open(card_path) as f:
-        return card_path, yaml.safe_load(f)
+    try:
+        with open(card_path) as f:
+            card = yaml.safe_load(f)
+    except yaml.YAMLError as e:
+        raise ModelLoadError(f"{card_path}: not a valid YAML model card ({e})") from e
+    if not isinstance(card, dict):
+        raise ModelLoadError(f"{card_path}: a model card must be a YAML mapping, got {type(card).__name__}")
+    return card_path, card
+
+
+def check_card_keys(card_path: Path, card: dict, known: set[str], required: tuple[str, ...]) -> None:
+    """ModelLoadError on unknown top-level keys (a typo or another tool's file) or missing required ones."""
+    unknown = sorted(set(card) - known)
+    if unknown:
+        raise ModelLoadError(f"{card_path}: unknown card keys {unknown}; known: {sorted(known)}")
+    missing = [k for k in required if k not in card]
+    if missing:
+        raise ModelLoadError(f"{card_path}: card lacks {missing}")
+
+
+def read_weights(card_path: Path, card: dict) -> dict[str, torch.Tensor]:
+    """The card's safetensors tensors, after checking that the file exists, has the sha256 the card records
+    (cards written before the hash was recorded are only format-checked) and was saved for the card's robot.
+    safetensors holds raw tensors only: nothing is unpickled or executed."""
+    path = card_path.parent / str(card["weights"])
+    if not path.is_file():
+        raise ModelLoadError(f"{card_path}: its weights file {path} does not exist")
+    recorded = card.get("weights_sha256")
+    if recorded is not None and file_sha256(path) != recorded:
+        raise ModelLoadError(f"{path}: sha256 {file_sha256(path)} differs from the {recorded} that {card_path.name} "
+                             "records: the weights were altered, truncated or replaced")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            metadata = f.metadata() or {}
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise ModelLoadError(f"{path}: not a readable safetensors file ({e})") from e
+    if metadata.get("robot", card["robot"]) != card["robot"]:
+        raise ModelLoadError(f"{path}: weights saved for robot '{metadata['robot']}', but {card_path.name} is a "
+                             f"'{card['robot']}' card")
+    return state
 
 
 def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None = None,
@@ -46,10 +109,14 @@ def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None
     """Write `path`.safetensors and its card `path`.yaml (robot, model config, plus `card`). float16 halves the
     file (shipped weights); loading casts back to float32."""
     path = Path(path).with_suffix("")
+    unknown = sorted(set(card or {}) - MODEL_CARD_KEYS)
+    if unknown:
+        raise ValueError(f"save_model: unknown card keys {unknown}; known: {sorted(MODEL_CARD_KEYS)}")
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().to(dtype).cpu().contiguous() for k, v in net.state_dict().items() if v.dtype.is_floating_point}
     save_file(state, str(path.with_suffix(".safetensors")), metadata={"robot": robot, "config": net.cfg.name})
-    full_card = {"robot": robot, "weights": path.with_suffix(".safetensors").name, "model": net.cfg.to_dict(), **(card or {})}
+    full_card = {"robot": robot, "weights": path.with_suffix(".safetensors").name,
+                 "weights_sha256": file_sha256(path.with_suffix(".safetensors")), "model": net.cfg.to_dict(), **(card or {})}
     with open(path.with_suffix(".yaml"), "w") as f:
         yaml.safe_dump(full_card, f, sort_keys=False)
     return path.with_suffix(".yaml")
@@ -77,13 +144,24 @@ def transfer_weights(net: HolisticNet, model: str | Path) -> tuple[int, int]:
 def load_model(model: str | Path, device: str | torch.device = "cpu") -> tuple[HolisticNet, RobotModel, dict]:
     """(network in eval mode, its robot, its card) from a shipped name or a card/weights path."""
     card_path, card = read_card(model)
-    robot = RobotModel(card["robot"], device=device)
-    cfg = load_model_config(card["model"])
+    check_card_keys(card_path, card, MODEL_CARD_KEYS, ("robot", "weights", "model"))
+    if not isinstance(card["model"], dict) or set(card["model"]) - {f.name for f in fields(ModelConfig)}:
+        known = sorted(f.name for f in fields(ModelConfig))
+        raise ModelLoadError(f"{card_path}: 'model' must be a network configuration with keys among {known}")
+    state = read_weights(card_path, card)
+    try:
+        robot = RobotModel(card["robot"], device=device)
+        cfg = load_model_config(card["model"])
+    except (TypeError, ValueError) as e:
+        raise ModelLoadError(f"{card_path}: {e}") from e
     net = HolisticNet(replace(cfg, pretrained=False, depth_pretrained=False), robot)  # the weights come from the file
     net.cfg = cfg
-    state = load_file(str(card_path.parent / card["weights"]))
-    missing, unexpected = net.load_state_dict(state, strict=False)
-    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
-    if missing or unexpected:
-        raise ValueError(f"{card_path}: weights do not match the network (missing {missing[:5]}, unexpected {unexpected[:5]})")
+    own = net.state_dict()
+    wrong = [k for k, v in state.items() if k in own and own[k].shape != v.shape]
+    missing = [k for k in own if k not in state and not k.endswith("num_batches_tracked")]
+    unexpected = [k for k in state if k not in own]
+    if missing or unexpected or wrong:
+        raise ModelLoadError(f"{card_path}: weights do not match the network (missing {missing[:5]}, unexpected "
+                             f"{unexpected[:5]}, other shapes {wrong[:5]}): a card of another robot or network?")
+    net.load_state_dict(state, strict=False)
     return net.to(device).eval(), robot, card

@@ -146,6 +146,9 @@ class Trainer:
                    self.out / "last.pt")
 
     def load_checkpoint(self) -> dict | None:
+        """Restore the resumable checkpoint `last.pt` this trainer wrote into its own run directory. It is the
+        package's only pickle-format file (model weights and optimizer state, read with torch's restricted
+        `weights_only` unpickler); shipped and user models are safetensors, which `model/weights.py` reads."""
         path = self.out / "last.pt"
         if not path.exists():
             return None
