@@ -8,10 +8,14 @@ from setuptools import find_packages, setup
 package_name = "holo_pose_ros"
 
 
-def share(subdir):
-    """data_files entries that install config/<subdir> under share/<pkg>/config/<subdir>."""
-    files = [f for f in glob(os.path.join("config", subdir, "*")) if os.path.isfile(f)]
-    return (os.path.join("share", package_name, "config", subdir) if subdir else os.path.join("share", package_name, "config"), files)
+def config_files():
+    """data_files entries that install every file of config/ (subfolders too) under share/<pkg>/config/, where
+    `ros2 run` installs and resources.config_dir() look for them."""
+    entries = []
+    for folder in sorted({os.path.dirname(f) for f in glob("config/**/*", recursive=True) if os.path.isfile(f)}):
+        files = sorted(f for f in glob(os.path.join(folder, "*")) if os.path.isfile(f))
+        entries.append((os.path.join("share", package_name, folder), files))
+    return entries
 
 
 setup(
@@ -22,11 +26,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        share(""),
-        share("robots"),
-        share("generate"),
-        share("model"),
-        share("train"),
+        *config_files(),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -61,9 +61,9 @@ setup(
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for a pip install without a ROS distribution
         "ros": ["ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp"],
-        "test": ["pytest", "rosbags", "scipy"],
+        # colcon: test_colcon_install builds the package as a ROS user does
+        "test": ["pytest", "rosbags", "scipy", "colcon-common-extensions"],
     },
-    tests_require=["pytest"],
     zip_safe=False,
     maintainer="holo_pose_ros developers",
     maintainer_email="holo-pose@example.com",
