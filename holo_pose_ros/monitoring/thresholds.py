@@ -1,0 +1,159 @@
+"""Per-joint alarm thresholds of the monitor, from the loaded model's card: the held-out mean joint error the card
+measured (its `test:` section, `joint_error_deg`: degrees, millimetres for prismatic joints) times a factor is the
+WARN threshold, `error_factor` times that the ERROR threshold; a joint the card does not measure gets a default,
+and any joint an explicit override. Radians and metres out. Reads the card's YAML only (no torch)."""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from holo_pose_ros.monitoring.joints import ANGULAR_KINDS, LINEAR_KINDS
+from holo_pose_ros.resources import weights_dir
+from holo_pose_ros.robots.description import urdf_text
+from holo_pose_ros.robots.spec import RobotSpec
+
+CARD_UNITS = {"deg": math.pi / 180.0, "mm": 1e-3}  # the card's units -> radians, metres
+
+
+def joint_kinds(spec: RobotSpec) -> list[str]:
+    """The URDF joint type ('revolute', 'continuous' or 'prismatic') of each of the robot YAML's joints, read from
+    the URDF's XML (light: no mesh or kinematics library)."""
+    root = ET.fromstring(urdf_text(spec.urdf))
+    types = {j.get("name"): j.get("type") for j in root.iter("joint")}
+    kinds = []
+    for joint in spec.joints:
+        kind = types.get(joint.urdf)
+        if kind is None:
+            raise ValueError(f"{spec.source_file}: joint '{joint.name}' drives URDF joint '{joint.urdf}', which the "
+                             "URDF does not have")
+        if kind not in ANGULAR_KINDS + LINEAR_KINDS:
+            raise ValueError(f"{spec.source_file}: URDF joint '{joint.urdf}' is {kind}; the monitor handles "
+                             f"{', '.join(ANGULAR_KINDS + LINEAR_KINDS)} joints")
+        kinds.append(kind)
+    return kinds
+
+
+def read_model_card(model: str | Path) -> tuple[Path, dict]:
+    """(path, contents) of the card of a shipped model name ('panda'), a card (.yaml) or a weights file
+    (.safetensors, its card beside it): holo_pose_ros.model.weights.resolve_model's rules, without importing torch."""
+    path = Path(model)
+    if path.suffix == ".safetensors":
+        path = path.with_suffix(".yaml")
+    elif not path.suffix:
+        path = weights_dir() / f"{model}.yaml"
+        if not path.is_file():
+            shipped = sorted(p.stem for p in weights_dir().glob("*.yaml") if (p.with_suffix(".safetensors")).is_file())
+            raise ValueError(f"no shipped model '{model}'; shipped: {', '.join(shipped) or 'none'}")
+    if not path.is_file():
+        raise FileNotFoundError(f"model card not found: {path}")
+    with open(path) as f:
+        card = yaml.safe_load(f)
+    if not isinstance(card, dict):
+        raise ValueError(f"{path}: not a model card (expected a mapping)")
+    return path, card
+
+
+@dataclass(frozen=True)
+class MeasuredError:
+    """A card's held-out mean |error| of one joint: `value` in radians (metres for prismatic joints), measured on
+    the card's test set `test_set`."""
+
+    value: float
+    test_set: str
+
+
+def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str = "") -> dict[str, MeasuredError]:
+    """The held-out mean error per joint from the card's `test: <set>: joint_error_deg:` (per joint, with `units`).
+    `test_set` '' takes, per joint, the largest over the card's test sets (an alarm then means more than the model's
+    error on any of its held-out looks); otherwise that set only (ValueError when the card has none of that name).
+    Joints the card does not measure (or measures as NaN / null) are left out."""
+    tests = card.get("test") or {}
+    if not isinstance(tests, Mapping):
+        return {}
+    if test_set:
+        if test_set not in tests:
+            raise ValueError(f"the model card has no test set '{test_set}'; it has: {', '.join(tests) or 'none'}")
+        tests = {test_set: tests[test_set]}
+    errors: dict[str, MeasuredError] = {}
+    for set_name, section in tests.items():
+        joints = (section or {}).get("joint_error_deg") if isinstance(section, Mapping) else None
+        if not isinstance(joints, Mapping):
+            continue
+        units = joints.get("units") or {}
+        for name in joint_names:
+            value = joints.get(name)
+            unit = units.get(name, "deg")
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or unit not in CARD_UNITS:
+                continue
+            measured = MeasuredError(float(value) * CARD_UNITS[unit], str(set_name))
+            if name not in errors or measured.value > errors[name].value:
+                errors[name] = measured
+    return errors
+
+
+@dataclass(frozen=True)
+class JointThreshold:
+    """A joint's alarm thresholds on |estimate - reported| (radians, metres for prismatic joints) and where the WARN
+    threshold came from ('card <set>: 3 x 0.295', 'override', 'default')."""
+
+    name: str
+    kind: str
+    warn: float
+    error: float
+    source: str
+
+    @property
+    def unit(self) -> str:
+        return "m" if self.kind in LINEAR_KINDS else "rad"
+
+    @property
+    def can_warn(self) -> bool:
+        """False for an angular joint whose WARN threshold is pi or more: a wrapped discrepancy never exceeds it."""
+        return self.kind in LINEAR_KINDS or self.warn < math.pi
+
+    @property
+    def can_error(self) -> bool:
+        return self.kind in LINEAR_KINDS or self.error < math.pi
+
+
+def joint_thresholds(joint_names: Sequence[str], kinds: Sequence[str], measured: Mapping[str, MeasuredError],
+                     factor: float = 3.0, error_factor: float = 2.0, default_rad: float = 0.35,
+                     default_m: float = 0.02, overrides: Mapping[str, float] | None = None) -> list[JointThreshold]:
+    """WARN = an override, else `factor` x the card's measured error, else the default of the joint's kind;
+    ERROR = `error_factor` x WARN. ValueError for an override naming no joint or a threshold that is not > 0."""
+    overrides = dict(overrides or {})
+    unknown = sorted(set(overrides) - set(joint_names))
+    if unknown:
+        raise ValueError(f"threshold overrides: {unknown} are not joints of the robot YAML ({', '.join(joint_names)})")
+    if not (factor > 0 and error_factor >= 1 and default_rad > 0 and default_m > 0):
+        raise ValueError("threshold_factor and the defaults must be > 0, error_factor >= 1")
+    out = []
+    for name, kind in zip(joint_names, kinds, strict=True):
+        if name in overrides:
+            warn, source = float(overrides[name]), "override"
+        elif name in measured:
+            warn = factor * measured[name].value
+            source = f"card {measured[name].test_set}: {factor:g} x {measured[name].value:.4g}"
+        else:
+            warn, source = (default_m if kind in LINEAR_KINDS else default_rad), "default"
+        if not (math.isfinite(warn) and warn > 0):
+            raise ValueError(f"{name}: threshold {warn} ({source}) must be finite and > 0")
+        out.append(JointThreshold(name, kind, warn, error_factor * warn, source))
+    return out
+
+
+def parse_overrides(pairs: Mapping[str, str]) -> dict[str, float]:
+    """{'joint': '0.3'} -> {'joint': 0.3}; ValueError naming the joint for a value that is not a number."""
+    out = {}
+    for name, text in pairs.items():
+        try:
+            out[name] = float(text)
+        except ValueError:
+            raise ValueError(f"threshold_overrides: {name}={text} is not a number") from None
+    return out
