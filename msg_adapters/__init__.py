@@ -9,6 +9,8 @@ from msg_adapters.estimate import (joint_positions, keypoints_2d_from_msg, pose_
 from msg_adapters.header import copy_header, make_header, stamp_ns
 from msg_adapters.image import (DEFAULT_MAX_PIXELS, ENCODINGS, ImageConversionError, image_to_rgb,
                                 rgb_to_image)
+from msg_adapters.joint_states import (joint_positions_by_name, joint_state_arrays, joint_state_from_arrays,
+                                       to_diagnostic_status)
 
 __all__ = [
     "CameraInfoError", "camera_info_from_K", "camera_info_to_K", "check_image_size",
@@ -16,4 +18,5 @@ __all__ = [
     "to_keypoints_2d", "to_keypoints_3d", "to_markers", "to_pose_stamped", "to_transform_stamped",
     "copy_header", "make_header", "stamp_ns",
     "DEFAULT_MAX_PIXELS", "ENCODINGS", "ImageConversionError", "image_to_rgb", "rgb_to_image",
+    "joint_positions_by_name", "joint_state_arrays", "joint_state_from_arrays", "to_diagnostic_status",
 ]
