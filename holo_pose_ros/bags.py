@@ -24,6 +24,7 @@ found), so ground truth and estimates share one encoding. Synthetic stamps are `
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -278,16 +279,63 @@ class BagEvalSummary:
     out: Path
     report: dict | None
     report_path: Path | None
+    n_other_type: int = 0      # messages of another type on the image topic, ignored
+    problems: list[str] = field(default_factory=list)  # the bag ended early or was corrupt
 
 
-def _pick_topic(topics: dict, msgtype: str, wanted: str | None, what: str) -> str:
-    """`wanted`, checked, or the bag's only topic of `msgtype`; ValueError listing the candidates otherwise."""
-    candidates = sorted(t for t, info in topics.items() if info.msgtype == msgtype)
+class BagReadError(ValueError):
+    """A bag that cannot be read at all; the message names the bag and its storage files."""
+
+
+@contextlib.contextmanager
+def _open_bag(bag: Path, typestore):
+    """An open rosbags AnyReader of `bag` (closed on exit); BagReadError naming the folder and its files when it
+    cannot be opened (missing, empty, truncated mcap without its footer, malformed sqlite3, bad metadata.yaml)."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    if not bag.exists():
+        raise BagReadError(f"bag {bag} does not exist")
+    files = sorted(p.name for p in bag.iterdir()) if bag.is_dir() else [bag.name]
+    reader = AnyReader([bag], default_typestore=typestore)
+    try:
+        reader.open()
+    except (AnyReaderError, OSError, ValueError, KeyError) as e:
+        raise BagReadError(f"cannot read bag {bag} ({', '.join(files)}): {e}") from e
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _read_messages(reader, connections, bag: Path, problems: list[str]):
+    """(connection, log time ns, raw) of `connections`, stopping with a warning (recorded in `problems`) when the
+    storage ends early or is corrupt: what was read before still counts."""
+    iterator = reader.messages(connections=connections)
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except Exception as e:  # noqa: BLE001 - rosbags' storage readers raise many kinds on damaged files
+            problem = f"bag {bag} is truncated or corrupt: reading stopped early ({type(e).__name__}: {e})"
+            logger.warning(problem)
+            problems.append(problem)
+            return
+        yield item
+
+
+def _pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str:
+    """`wanted`, checked, or the bag's only topic with `msgtype` messages (a topic may also carry other types);
+    ValueError listing the candidates otherwise."""
+    types: dict[str, set[str]] = {}
+    for c in connections:
+        types.setdefault(c.topic, set()).add(c.msgtype)
+    candidates = sorted(t for t, kinds in types.items() if msgtype in kinds)
     if wanted is not None:
-        if wanted not in topics:
+        if wanted not in types:
             raise ValueError(f"no topic {wanted} in the bag; {msgtype} topics: {candidates or 'none'}")
-        if topics[wanted].msgtype != msgtype:
-            raise ValueError(f"topic {wanted} is {topics[wanted].msgtype}, expected {msgtype}")
+        if msgtype not in types[wanted]:
+            raise ValueError(f"topic {wanted} is {', '.join(sorted(types[wanted]))}, expected {msgtype}")
         return wanted
     if len(candidates) != 1:
         raise ValueError(f"the bag has {len(candidates)} {msgtype} topics ({candidates}); choose one with "
@@ -315,7 +363,6 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
     the images' headers and log times. When the bag has ground truth (`ground_truth_ns`/keypoints and
     keypoints_2d) for the images' stamps, also write `out`/report.json; images without ground truth are left out
     of the report, and images that could not be estimated count as not found."""
-    from rosbags.highlevel import AnyReader
     from tqdm import tqdm
 
     from holo_pose_ros.estimator import Estimator
@@ -331,24 +378,35 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
     kwargs = {} if min_confidence is None else {"min_confidence": min_confidence}
     estimator = Estimator.from_model(model, device=device, backend=backend, tracking=tracking, fit=fit, **kwargs)
     robot = estimator.robot
-    with AnyReader([bag], default_typestore=typestore) as reader:
+    problems: list[str] = []
+    with _open_bag(bag, typestore) as reader:
         topics = reader.topics
-        image_topic = _pick_topic(topics, IMAGE_MSGTYPE, image_topic, "image")
-        camera_info_topic = _pick_topic(topics, CAMERA_INFO_MSGTYPE, camera_info_topic, "info")
+        image_topic = _pick_topic(reader.connections, IMAGE_MSGTYPE, image_topic, "image")
+        camera_info_topic = _pick_topic(reader.connections, CAMERA_INFO_MSGTYPE, camera_info_topic, "info")
         gt_topics = {f"{ground_truth_ns}/{name}": name for name, msgtype in MSGTYPES.items()
                      if topics.get(f"{ground_truth_ns}/{name}") is not None
                      and topics[f"{ground_truth_ns}/{name}"].msgtype == msgtype}
         infos: list[tuple[int, int, object]] = []
         truth_msgs: dict[int, dict[str, object]] = {}
-        small = [c for c in reader.connections if c.topic == camera_info_topic or c.topic in gt_topics]
-        for conn, t_ns, raw in reader.messages(connections=small):
-            msg = reader.deserialize(raw, conn.msgtype)
+        small = [c for c in reader.connections if (c.topic == camera_info_topic and c.msgtype == CAMERA_INFO_MSGTYPE)
+                 or (c.topic in gt_topics and c.msgtype == MSGTYPES[gt_topics[c.topic]])]
+        for conn, t_ns, raw in _read_messages(reader, small, bag, problems):
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
+                logger.warning("a %s message on %s does not deserialize, skipped: %s", conn.msgtype, conn.topic, e)
+                continue
             if conn.topic == camera_info_topic:
                 infos.append((t_ns, stamp_ns(msg.header.stamp), msg))
             else:
                 truth_msgs.setdefault(stamp_ns(msg.header.stamp), {})[gt_topics[conn.topic]] = msg
         has_truth = "keypoints" in gt_topics.values() and "keypoints_2d" in gt_topics.values()
-        image_conns = [c for c in reader.connections if c.topic == image_topic]
+        image_conns = [c for c in reader.connections if c.topic == image_topic and c.msgtype == IMAGE_MSGTYPE]
+        others = [c for c in reader.connections if c.topic == image_topic and c.msgtype != IMAGE_MSGTYPE]
+        n_other = sum(c.msgcount for c in others)
+        if n_other:
+            logger.warning("%d message(s) of other types (%s) on %s ignored", n_other,
+                           ", ".join(sorted({c.msgtype for c in others})), image_topic)
         n_images = sum(c.msgcount for c in image_conns)
         if limit is not None:
             n_images = min(n_images, limit)
@@ -357,12 +415,17 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         bag_out = _BagOut(writer, typestore)
         results, n_done, found, skipped, no_truth = [], 0, 0, 0, 0
         try:
-            messages = reader.messages(connections=image_conns)
+            messages = _read_messages(reader, image_conns, bag, problems)
             for conn, t_ns, raw in tqdm(messages, total=n_images, desc="bag-eval", unit="image", disable=not progress):
                 if n_done == n_images:
                     break
                 index, n_done = n_done, n_done + 1
-                msg = reader.deserialize(raw, conn.msgtype)
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
+                    skipped += 1
+                    logger.warning("image %d does not deserialize, skipped: %s", index, e)
+                    continue
                 stamp = stamp_ns(msg.header.stamp)
                 estimate, seconds = None, 0.0
                 try:
@@ -403,7 +466,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         report_path = out / "report.json"
         write_report(report, report_path)
     return BagEvalSummary(n_images=n_done, n_found=found, n_not_found=n_done - found - skipped, n_skipped=skipped,
-                          out=out, report=report, report_path=report_path)
+                          out=out, report=report, report_path=report_path, n_other_type=n_other, problems=problems)
 
 
 def _not_found(robot):

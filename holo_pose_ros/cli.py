@@ -111,6 +111,10 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
                        limit=args.limit, progress=not args.quiet)
     print(f"{summary.n_images} images: {summary.n_found} found, {summary.n_not_found} not found, "
           f"{summary.n_skipped} skipped; estimates: {summary.out}")
+    if summary.n_other_type:
+        print(f"{summary.n_other_type} message(s) of other types on the image topic ignored")
+    for problem in summary.problems:
+        print(problem)
     if summary.report is not None:
         print(format_report(summary.report))
         print(f"report: {summary.report_path}")

@@ -258,11 +258,31 @@ def _image_path(folder: Path, name: str, files: set[str]) -> Path:
     raise _Malformed("image", f"no {name}.rgb.jpg or {name}.rgb.png")
 
 
+def decode_image(path: Path) -> np.ndarray:
+    """The BGR image of a JPEG or PNG file; DreamFormatError naming the file when it cannot be read, does not
+    decode, or is cut short (OpenCV decodes a truncated JPEG into a grey-padded image without an error, so the
+    end-of-image marker of JPEG and the IEND chunk of PNG are checked)."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise DreamFormatError(f"cannot read image {path}: {e}") from e
+    raw = data.tobytes()
+    if raw[:2] == b"\xff\xd8" and b"\xff\xd9" not in raw[-1024:]:  # some writers append bytes after the marker
+        raise DreamFormatError(f"image {path} is truncated (the JPEG has no end-of-image marker)")
+    if raw[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in raw[-16:]:
+        raise DreamFormatError(f"image {path} is truncated (the PNG has no IEND chunk)")
+    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if image is None:
+        raise DreamFormatError(f"cannot read image {path}: empty or not a JPEG/PNG image")
+    return image
+
+
 def _check_image(path: Path, width: int, height: int) -> None:
     """_Malformed('image') unless the image decodes to width x height pixels."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise _Malformed("image", f"cannot decode {path.name}")
+    try:
+        image = decode_image(path)
+    except DreamFormatError as e:
+        raise _Malformed("image", str(e)) from e
     if image.shape[:2] != (height, width):
         raise _Malformed("image", f"{path.name} is {image.shape[1]}x{image.shape[0]}, expected {width}x{height}")
 
@@ -375,6 +395,7 @@ class DreamReader:
         self.K, self.width, self.height = read_camera_settings(self.folder / CAMERA_FILE)
         self.problems: list[tuple[str, str, str]] = []
         raw = self._parse_all(frame_files, files, check_images)
+        self.n_malformed_files = len(self.problems)  # problems found reading the folder; `images` adds later ones
         if not raw:
             first = self.problems[0]
             raise DreamFormatError(f"no valid frames in {self.folder} ({len(self.problems)} malformed; first: "
@@ -434,13 +455,24 @@ class DreamReader:
 
     def load_image(self, frame: DreamFrame) -> np.ndarray:
         """The frame's image as (H, W, 3) uint8 RGB; DreamFormatError naming the file if unreadable or mis-sized."""
-        image = cv2.imread(str(frame.image_path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise DreamFormatError(f"cannot read image {frame.image_path}")
+        image = decode_image(frame.image_path)
         if image.shape[:2] != (frame.height, frame.width):
             raise DreamFormatError(f"image {frame.image_path} is {image.shape[1]}x{image.shape[0]}, but "
                                    f"{CAMERA_FILE} says {frame.width}x{frame.height}")
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def images(self, frames=None):
+        """(frame, RGB image) of every frame of `frames` (default: all) whose image reads; an unreadable one
+        (truncated, empty, not an image, of another size) is logged, added to `problems` as (file, 'image',
+        message) and skipped, so one bad file never ends a run."""
+        for frame in (self._frames if frames is None else frames):
+            try:
+                image = self.load_image(frame)
+            except DreamFormatError as e:
+                self.problems.append((str(frame.image_path), "image", str(e)))
+                logger.warning("skipping DREAM frame %s: field 'image': %s", frame.name, e)
+                continue
+            yield frame, image
 
     def load_mask(self, frame: DreamFrame) -> np.ndarray | None:
         """The frame's robot mask (H, W) uint8, or None when the frame has none."""

@@ -165,6 +165,10 @@ def format_report(report: dict) -> str:
                              ("reproj_error_px", "reprojection error", "px")):
         lines.append(f"{label:<20}{_num(report[key]['mean'])} / {_num(report[key]['median'])} {unit} (mean / median)")
     lines.append(f"fps                 {_num(report['fps'], 1)}")
+    if report.get("n_skipped"):
+        first = report["skipped"][0]
+        lines.append(f"skipped malformed   {report['n_skipped']} (first: {first['file']}: field '{first['field']}': "
+                     f"{first['message']})")
     lines.append("in-image kps  frames  not found  ADD AUC  ADD mean mm")
     lines += [f"{row['n_in_image']:>12}  {row['n_frames']:>6}  {row['n_not_found']:>9}  {_num(row['add_auc']):>7}  "
               f"{_num(row['add_mean_mm']):>11}" for row in report["truncation"]]

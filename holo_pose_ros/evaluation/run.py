@@ -8,7 +8,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.data.dream import DreamFormatError, DreamReader
 from holo_pose_ros.estimator import METHODS, Estimate, Estimator
 from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints, keypoint_errors_px, summarize_2d
 from holo_pose_ros.evaluation.report import FrameResult, build_report
@@ -38,8 +38,9 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
     frames = list(reader)[:limit]
     results, images, errors, missed, n_2d = [], [], [], 0, 0
     robot = estimator.robot
-    for frame in tqdm(frames, desc="evaluate", unit="frame", disable=not progress):
-        image = reader.load_image(frame)
+    skipped_before = len(reader.problems)
+    for frame, image in tqdm(reader.images(frames), total=len(frames), desc="evaluate", unit="frame",
+                             disable=not progress):
         if known_joints and frame.joints is None:
             raise ValueError(f"{frame.name}: --known-joints needs ground-truth joints in every frame")
         start = time.perf_counter()
@@ -54,10 +55,22 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
                 errors.append(keypoint_errors_px(estimate.detected_2d, gt, frame.width, frame.height))
         if len(images) < keep_images:
             images.append(image)
+    if frames and not results:
+        raise DreamFormatError(f"{reader.folder}: none of its {len(frames)} frames has a readable image (first: "
+                               f"{reader.problems[-1][0]}: {reader.problems[-1][2]})")
     spec = robot.spec
     report = build_report(results, spec.joint_names, robot.joint_types, spec.keypoint_names)
     report.update(summarize_2d(errors, robot.n_keypoints, n_2d, missed))
+    report.update(skipped_frames(reader, skipped_before))
     return report, results, images
+
+
+def skipped_frames(reader: DreamReader, images_from: int) -> dict:
+    """The report's account of malformed input: frames skipped at reading (bad JSON fields) and, from
+    reader.problems[images_from:], at decoding their images; each as {file, field, message}."""
+    problems = reader.problems[:reader.n_malformed_files] + reader.problems[images_from:]
+    return {"n_skipped": len(problems),
+            "skipped": [{"file": f, "field": field, "message": m} for f, field, m in problems]}
 
 
 def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | None = None, progress: bool = True,
@@ -69,8 +82,9 @@ def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | Non
     robot = estimator.robot
     results: dict[str, list[FrameResult]] = {}
     errors, missed, n_2d = [], 0, 0
-    for frame in tqdm(frames, desc="ablation", unit="frame", disable=not progress):
-        image = reader.load_image(frame)
+    skipped_before = len(reader.problems)
+    for frame, image in tqdm(reader.images(frames), total=len(frames), desc="ablation", unit="frame",
+                             disable=not progress):
         start = time.perf_counter()
         estimates = estimator.estimate_methods(image, frame.K, None, METHODS)
         seconds = time.perf_counter() - start
@@ -87,7 +101,7 @@ def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | Non
             else:
                 errors.append(keypoint_errors_px(detected, gt, frame.width, frame.height))
     spec = robot.spec
-    two_d = summarize_2d(errors, robot.n_keypoints, n_2d, missed)
+    two_d = summarize_2d(errors, robot.n_keypoints, n_2d, missed) | skipped_frames(reader, skipped_before)
     return {method: {**build_report(r, spec.joint_names, robot.joint_types, spec.keypoint_names), **two_d}
             for method, r in results.items()}
 
