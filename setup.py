@@ -79,6 +79,7 @@ setup(
             "holo-pose-live-eval = holo_pose_ros.nodes.evaluation_node:main",
             "evaluation_node = holo_pose_ros.nodes.evaluation_node:main",
             "holo-pose-demo = holo_pose_ros.nodes.demo:main",
+            "joint_state_monitor_node = holo_pose_ros.nodes.joint_state_monitor_node:main",
         ],
     },
 )
