@@ -1,6 +1,10 @@
 """Synthetic data generator: renders randomized frames of a robot and writes them as a DREAM folder with a
 label mask per frame (`NNNNNN.mask.png`: 0 background, 1 + link index for robot pixels, 255 distractors).
-Frame i depends only on (seed, i), so the output is identical for any number of workers."""
+Frame i depends only on (seed, i), so the output is identical for any number of workers.
+
+With `second_robot` (another robot type) each frame also shows that robot beside the first, both in its ground
+truth (one DREAM object each, so that each robot's DreamReader reads its own) and in the mask (its links numbered
+after the first robot's); placement from config/generate/scene/second_robot.yaml."""
 
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ if TYPE_CHECKING:
 
 DISTRACTOR_LABEL = 255
 SETTINGS_FILE = "_generator_settings.json"  # how the folder was made (DREAM readers ignore it)
+SECOND_ROBOT_FILE = "scene/second_robot.yaml"  # under config/generate: where a second robot stands
 
 
 def load_generator_config(config: str | Path) -> dict:
@@ -50,6 +55,7 @@ class GenerateJob:
     K: tuple
     config: dict
     max_faces: int = 12000
+    second_robot: str | None = None  # another robot in every frame (config["second_robot"] places it)
 
 
 @dataclass(frozen=True)
@@ -79,22 +85,48 @@ class FrameRenderer:
         self.meshes = load_link_meshes(self.model, max_faces=job.max_faces)
         self.renderer = Renderer(job.width, job.height)
         self.K = np.asarray(job.K, dtype=np.float64)
-        self.writer = DreamWriter(job.out, self.model, self.K, job.width, job.height)
         self.colours = {link: mesh.color for link, mesh in self.meshes.items()}
+        self.second, self.all_meshes, self.second_colours = None, self.meshes, {}
+        if job.second_robot:
+            self.second = RobotModel(job.second_robot, dtype=torch.float64)
+            second_meshes = load_link_meshes(self.second, max_faces=job.max_faces)
+            shared = sorted(set(second_meshes) & set(self.meshes))
+            if shared:
+                raise ValueError(f"robots {job.robot} and {job.second_robot} share link names {shared}")
+            self.all_meshes = {**self.meshes, **second_meshes}  # labels: the first robot's links, then the second's
+            self.second_colours = {link: mesh.color for link, mesh in second_meshes.items()}
+        self.writer = DreamWriter(job.out, self.model, self.K, job.width, job.height,
+                                  others=[self.second] if self.second is not None else ())
+        self.static_T_cam_base = None  # camera.static: one camera pose for the whole folder, the robot moves
+        if job.config["camera"].get("static", False):
+            from holo_pose_ros.data.scene import sample_static_camera
+
+            self.static_T_cam_base = sample_static_camera(self.model, job.config["camera"],
+                                                          np.random.default_rng([job.seed, 0, 1]), self.K, job.height)
 
     def frame(self, index: int) -> tuple[np.ndarray, np.ndarray, FrameScene]:
         """Render frame `index`: (RGB uint8 image, label mask uint8, the scene drawn)."""
         import torch
 
         from holo_pose_ros.data.backgrounds import random_background
-        from holo_pose_ros.data.scene import sample_scene
+        from holo_pose_ros.data.scene import sample_scene, sample_two_robot_scene
 
         job, cfg = self.job, self.job.config
         rng = np.random.default_rng([job.seed, index + 1])
-        scene = sample_scene(self.model, cfg, rng, self.K, job.width, job.height, self.colours)
+        if self.second is None:
+            scene = sample_scene(self.model, cfg, rng, self.K, job.width, job.height, self.colours,
+                                 self.static_T_cam_base)
+        else:
+            scene = sample_two_robot_scene(self.model, self.second, cfg, cfg["second_robot"], rng, self.K, job.width,
+                                           job.height, self.colours, self.second_colours)
         links = self.model.link_transforms(torch.from_numpy(scene.joints[None]), list(self.meshes))
         poses = {link: scene.T_cam_base @ T[0].numpy() for link, T in links.items()}
-        result = self.renderer.render(poses, self.meshes, self.K, scene.materials, scene.light, scene.distractors)
+        for other in scene.others:  # the second robot's links (its meshes follow the first robot's)
+            links = self.second.link_transforms(torch.from_numpy(other.joints[None]),
+                                                [link for link in self.all_meshes if link not in self.meshes])
+            poses.update({link: other.T_cam_base @ T[0].numpy() for link, T in links.items()})
+        result = self.renderer.render(poses, self.all_meshes, self.K, scene.materials, scene.light,
+                                      scene.distractors)
         background = random_background(rng, job.height, job.width, tuple(cfg["background"]["layers"]),
                                        tuple(cfg["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
@@ -103,7 +135,8 @@ class FrameRenderer:
 
     def write(self, index: int) -> int:
         image, labels, scene = self.frame(index)
-        self.writer.write(index, image, scene.joints, scene.T_cam_base, mask=labels)
+        self.writer.write(index, image, scene.joints, scene.T_cam_base, mask=labels,
+                          others=[(o.joints, o.T_cam_base) for o in scene.others])
         return index
 
 
@@ -131,25 +164,38 @@ def _write_in_worker(index: int) -> int:
 
 
 def make_job(robot: str, out: str | Path, seed: int, width: int = 640, height: int = 480,
-             config: str | Path = "randomized") -> GenerateJob:
-    """The job of one folder: its camera (K drawn from the seed) and configuration."""
+             config: str | Path = "randomized", second_robot: str | None = None) -> GenerateJob:
+    """The job of one folder: its camera (K drawn from the seed) and configuration; with `second_robot`, the
+    configuration's `second_robot:` section (else config/generate/scene/second_robot.yaml's) places it."""
     from holo_pose_ros.data.scene import sample_intrinsics
 
     cfg = load_generator_config(config)
+    if second_robot:
+        if Path(str(second_robot)).stem == Path(str(robot)).stem:
+            raise ValueError(f"second_robot must be another robot type than {robot!r} (a DREAM reader tells the "
+                             "robots of a frame apart by their class)")
+        if "second_robot" not in cfg:
+            cfg = {**cfg, **load_generator_config(config_dir() / "generate" / SECOND_ROBOT_FILE)}
     K = sample_intrinsics(cfg["intrinsics"], np.random.default_rng([seed, 0]), width, height)
-    return GenerateJob(robot, str(out), int(seed), int(width), int(height), tuple(map(tuple, K.tolist())), cfg)
+    return GenerateJob(robot, str(out), int(seed), int(width), int(height), tuple(map(tuple, K.tolist())), cfg,
+                       second_robot=second_robot or None)
 
 
 def generate(robot: str, n: int, out: str | Path, seed: int = 0, workers: int | None = None, width: int = 640,
-             height: int = 480, config: str | Path = "randomized", progress: bool = True) -> GenerateSummary:
-    """Write `n` frames of `robot` into the DREAM folder `out`, with `workers` processes (default: all cores)."""
+             height: int = 480, config: str | Path = "randomized", progress: bool = True,
+             second_robot: str | None = None) -> GenerateSummary:
+    """Write `n` frames of `robot` into the DREAM folder `out`, with `workers` processes (default: all cores);
+    with `second_robot` (another robot type), that robot stands beside it in every frame."""
     if n < 1:
         raise ValueError("n must be at least 1")
-    job = make_job(robot, out, seed, width, height, config)
+    job = make_job(robot, out, seed, width, height, config, second_robot)
     Path(out).mkdir(parents=True, exist_ok=True)
     settings = {"robot": robot, "n": n, "seed": seed, "width": width, "height": height, "config": str(config),
                 "generator": job.config, "command": f"holo-pose generate --robot {robot} --n {n} --out {out} "
                                                       f"--seed {seed} --width {width} --height {height} --config {config}"}
+    if job.second_robot:
+        settings["second_robot"] = job.second_robot
+        settings["command"] += f" --second-robot {job.second_robot}"
     (Path(out) / SETTINGS_FILE).write_text(json.dumps(settings, indent=2))
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     bar = tqdm(total=n, desc=f"generate {robot}", unit="frame", disable=not progress)

@@ -1,9 +1,10 @@
 """Domain randomization: draw one synthetic frame's scene (joints, camera pose, link materials, light,
-distractor objects) from the ranges of a generator YAML. The robot base is the world frame (z up); metres."""
+distractor objects) from the ranges of a generator YAML. The robot base is the world frame (z up); metres.
+`sample_two_robot_scene` adds a second robot beside the first (config/generate/scene/second_robot.yaml)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -12,14 +13,23 @@ from holo_pose_ros.geometry.camera import intrinsics_matrix, look_at
 
 
 @dataclass
+class PlacedRobot:
+    """A further robot of a scene: its joints and where its base stands."""
+
+    joints: np.ndarray          # (J,) radians / metres, its YAML order
+    T_cam_base: np.ndarray      # (4, 4) its base in the camera frame
+
+
+@dataclass
 class FrameScene:
     """Everything the renderer and the writer need for one frame."""
 
     joints: np.ndarray          # (J,) radians / metres, YAML order
     T_cam_base: np.ndarray      # (4, 4) robot base in the camera frame
-    materials: dict[str, Material]
+    materials: dict[str, Material]  # every link of every robot of the scene
     light: Light
     distractors: list[Primitive]
+    others: list[PlacedRobot] = field(default_factory=list)  # robots besides the first (none by default)
 
 
 def _uniform(rng: np.random.Generator, bounds) -> float:
@@ -107,10 +117,23 @@ def _random_distractors(cfg: dict, appearance: dict, rng: np.random.Generator, T
     return out
 
 
+def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, height: int) -> np.ndarray:
+    """T_cam<-base of a camera that stays put while the robot moves (generator option camera.static): drawn as
+    for one frame, around the neutral pose's extent grown by camera.static_radius_scale so that most poses stay
+    in view."""
+    import torch
+
+    links = model.link_transforms(model.neutral[None].to(model.dtype))
+    origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
+    centre, radius = _robot_extent(origins)
+    return sample_camera(cfg, rng, centre, radius * float(cfg.get("static_radius_scale", 1.4)), K, height)
+
+
 def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, width: int, height: int,
-                 link_colours: dict[str, np.ndarray]) -> FrameScene:
-    """Draw one frame: joints uniform within the URDF limits, then camera, materials, light and distractors.
-    `model` is a float64 RobotModel; `link_colours` the meshes' own colours (for the realistic look)."""
+                 link_colours: dict[str, np.ndarray], T_cam_base: np.ndarray | None = None) -> FrameScene:
+    """Draw one frame: joints uniform within the URDF limits, then camera (unless `T_cam_base` fixes it),
+    materials, light and distractors. `model` is a float64 RobotModel; `link_colours` the meshes' own colours
+    (for the realistic look)."""
     import torch
 
     lower, upper = model.lower.numpy(), model.upper.numpy()
@@ -119,7 +142,8 @@ def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, widt
     origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
     keypoints = model.keypoints(torch.from_numpy(q[None]))[0].numpy()
     centre, radius = _robot_extent(origins)
-    T_cam_base = sample_camera(cfg["camera"], rng, centre, radius, K, height)
+    if T_cam_base is None:
+        T_cam_base = sample_camera(cfg["camera"], rng, centre, radius, K, height)
     appearance = cfg["appearance"]
     realistic = rng.random() < appearance["realistic_colour_probability"]
     materials = {link: _random_material(appearance, rng, colour if realistic else None) for link, colour in link_colours.items()}
@@ -129,4 +153,68 @@ def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, widt
         materials=materials,
         light=_random_light(cfg["lighting"], rng),
         distractors=_random_distractors(cfg["distractors"], appearance, rng, T_cam_base, keypoints, radius, K, width, height),
+    )
+
+
+def _pose_sample(model, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joints uniform within the URDF limits; (q, link origins (L, 3), keypoints (N, 3)) in the base frame."""
+    import torch
+
+    q = rng.uniform(model.lower.numpy(), model.upper.numpy())
+    links = model.link_transforms(torch.from_numpy(q[None]))
+    origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
+    return q, origins, model.keypoints(torch.from_numpy(q[None]))[0].numpy()
+
+
+def place_beside(centre: np.ndarray, radius: float, other_centre: np.ndarray, other_radius: float, gap_m: float,
+                 direction_rad: float, yaw_rad: float) -> np.ndarray:
+    """T_base<-other_base (4, 4): the other robot's base on the same floor (z = 0), turned by `yaw_rad` about z, its
+    bounding sphere (other_centre, other_radius in its own base frame) `gap_m` beyond the first's (centre, radius)
+    along the horizontal direction `direction_rad`: the two spheres' centres are radius + other_radius + gap_m
+    apart horizontally, so the robots never touch. Metres, radians."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    distance = radius + other_radius + gap_m
+    target_xy = centre[:2] + distance * np.array([np.cos(direction_rad), np.sin(direction_rad)])
+    T[:2, 3] = target_xy - (T[:3, :3] @ other_centre)[:2]
+    return T
+
+
+def sample_two_robot_scene(model, second, cfg: dict, placement: dict, rng: np.random.Generator, K: np.ndarray,
+                           width: int, height: int, link_colours: dict[str, np.ndarray],
+                           second_colours: dict[str, np.ndarray]) -> FrameScene:
+    """One frame of two robots: joints of each uniform within its limits, the second beside the first
+    (`place_beside`, gap and yaw drawn from `placement`), the camera framing both and looking across the line
+    between them (azimuth within placement.camera.across_deg of its perpendicular, either side), so that neither
+    hides the other; then materials (both robots' links), light and distractors as `sample_scene`. The first
+    robot's base is the world frame; the second robot is scene.others[0]."""
+    q1, origins1, kp1 = _pose_sample(model, rng)
+    q2, origins2, kp2 = _pose_sample(second, rng)
+    c1, r1 = _robot_extent(origins1)
+    c2, r2 = _robot_extent(origins2)
+    direction = rng.uniform(0.0, 2.0 * np.pi)
+    T_12 = place_beside(c1, r1, c2, r2, _uniform(rng, placement["gap_m"]), direction,
+                        np.radians(_uniform(rng, placement["yaw_deg"])))
+    c2_in_1 = T_12[:3, :3] @ c2 + T_12[:3, 3]
+    centre = (c1 + c2_in_1) / 2.0
+    radius = max(np.linalg.norm(c1 - centre) + r1, np.linalg.norm(c2_in_1 - centre) + r2)
+    camera = {**cfg["camera"], **{k: v for k, v in placement["camera"].items() if k != "across_deg"}}
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    azimuth = np.degrees(direction) + side * 90.0 + rng.uniform(-1, 1) * placement["camera"]["across_deg"]
+    camera["azimuth_deg"] = [azimuth, azimuth]
+    T_cam_base = sample_camera(camera, rng, centre, radius, K, height)
+    appearance = cfg["appearance"]
+    realistic = rng.random() < appearance["realistic_colour_probability"]
+    materials = {link: _random_material(appearance, rng, colour if realistic else None)
+                 for link, colour in {**link_colours, **second_colours}.items()}
+    keypoints = np.concatenate([kp1, kp2 @ T_12[:3, :3].T + T_12[:3, 3]])
+    return FrameScene(
+        joints=q1,
+        T_cam_base=T_cam_base,
+        materials=materials,
+        light=_random_light(cfg["lighting"], rng),
+        distractors=_random_distractors(cfg["distractors"], appearance, rng, T_cam_base, keypoints, radius, K,
+                                        width, height),
+        others=[PlacedRobot(q2, T_cam_base @ T_12)],
     )
