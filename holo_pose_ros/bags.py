@@ -179,7 +179,7 @@ def to_rosbags(msg, typestore, msgtype: str | None = None):
     return typestore.types[msgtype](**{name: convert(getattr(msg, name), desc) for name, desc in fields})
 
 
-def _typestore():
+def jazzy_typestore():
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_JAZZY)
@@ -247,7 +247,7 @@ def dream_to_bag(folder: str | Path, out: str | Path, storage: str = "mcap", rob
 
     reader = DreamReader(folder, robot or robot_of_folder(folder), units=units)
     frames = list(reader)[:limit]
-    typestore = _typestore()
+    typestore = jazzy_typestore()
     writer = _writer(Path(out), storage)
     bag = _BagOut(writer, typestore)
     try:
@@ -288,7 +288,7 @@ class BagReadError(ValueError):
 
 
 @contextlib.contextmanager
-def _open_bag(bag: Path, typestore):
+def open_bag(bag: Path, typestore):
     """An open rosbags AnyReader of `bag` (closed on exit); BagReadError naming the folder and its files when it
     cannot be opened (missing, empty, truncated mcap without its footer, malformed sqlite3, bad metadata.yaml)."""
     from rosbags.highlevel import AnyReader, AnyReaderError
@@ -307,7 +307,7 @@ def _open_bag(bag: Path, typestore):
         reader.close()
 
 
-def _read_messages(reader, connections, bag: Path, problems: list[str]):
+def read_messages(reader, connections, bag: Path, problems: list[str]):
     """(connection, log time ns, raw) of `connections`, stopping with a warning (recorded in `problems`) when the
     storage ends early or is corrupt: what was read before still counts."""
     iterator = reader.messages(connections=connections)
@@ -324,7 +324,7 @@ def _read_messages(reader, connections, bag: Path, problems: list[str]):
         yield item
 
 
-def _pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str:
+def pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str:
     """`wanted`, checked, or the bag's only topic with `msgtype` messages (a topic may also carry other types);
     ValueError listing the candidates otherwise."""
     types: dict[str, set[str]] = {}
@@ -343,7 +343,7 @@ def _pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str
     return candidates[0]
 
 
-def _camera_info_for(infos: list[tuple[int, int, object]], image_stamp: int, image_time: int):
+def camera_info_for(infos: list[tuple[int, int, object]], image_stamp: int, image_time: int):
     """The CameraInfo with the image's stamp, else the latest one logged at or before the image, else None."""
     exact = [m for t, s, m in infos if s == image_stamp]
     if exact:
@@ -374,15 +374,15 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         raise ValueError(f"output bag {out} already exists (rosbag2 writes a new folder)")
     if storage not in STORAGES:
         raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
-    typestore = _typestore()
+    typestore = jazzy_typestore()
     kwargs = {} if min_confidence is None else {"min_confidence": min_confidence}
     estimator = Estimator.from_model(model, device=device, backend=backend, tracking=tracking, fit=fit, **kwargs)
     robot = estimator.robot
     problems: list[str] = []
-    with _open_bag(bag, typestore) as reader:
+    with open_bag(bag, typestore) as reader:
         topics = reader.topics
-        image_topic = _pick_topic(reader.connections, IMAGE_MSGTYPE, image_topic, "image")
-        camera_info_topic = _pick_topic(reader.connections, CAMERA_INFO_MSGTYPE, camera_info_topic, "info")
+        image_topic = pick_topic(reader.connections, IMAGE_MSGTYPE, image_topic, "image")
+        camera_info_topic = pick_topic(reader.connections, CAMERA_INFO_MSGTYPE, camera_info_topic, "info")
         gt_topics = {f"{ground_truth_ns}/{name}": name for name, msgtype in MSGTYPES.items()
                      if topics.get(f"{ground_truth_ns}/{name}") is not None
                      and topics[f"{ground_truth_ns}/{name}"].msgtype == msgtype}
@@ -390,7 +390,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         truth_msgs: dict[int, dict[str, object]] = {}
         small = [c for c in reader.connections if (c.topic == camera_info_topic and c.msgtype == CAMERA_INFO_MSGTYPE)
                  or (c.topic in gt_topics and c.msgtype == MSGTYPES[gt_topics[c.topic]])]
-        for conn, t_ns, raw in _read_messages(reader, small, bag, problems):
+        for conn, t_ns, raw in read_messages(reader, small, bag, problems):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
@@ -415,7 +415,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         bag_out = _BagOut(writer, typestore)
         results, n_done, found, skipped, no_truth = [], 0, 0, 0, 0
         try:
-            messages = _read_messages(reader, image_conns, bag, problems)
+            messages = read_messages(reader, image_conns, bag, problems)
             for conn, t_ns, raw in tqdm(messages, total=n_images, desc="bag-eval", unit="image", disable=not progress):
                 if n_done == n_images:
                     break
@@ -429,7 +429,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
                 stamp = stamp_ns(msg.header.stamp)
                 estimate, seconds = None, 0.0
                 try:
-                    info = _camera_info_for(infos, stamp, t_ns)
+                    info = camera_info_for(infos, stamp, t_ns)
                     if info is None:
                         raise ValueError(f"no CameraInfo on {camera_info_topic} at or before this image")
                     image = image_to_rgb(msg)

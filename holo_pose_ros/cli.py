@@ -12,8 +12,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     from holo_pose_ros.data.generator import generate
 
     summary = generate(args.robot, args.n, args.out, seed=args.seed, workers=args.workers, width=args.width,
-                       height=args.height, config=args.config, progress=not args.quiet)
-    print(f"wrote {summary.n_frames} frames of {args.robot} to {args.out} in {summary.seconds:.1f} s "
+                       height=args.height, config=args.config, progress=not args.quiet, second_robot=args.second_robot)
+    robots = f"{args.robot} and {args.second_robot}" if args.second_robot else args.robot
+    print(f"wrote {summary.n_frames} frames of {robots} to {args.out} in {summary.seconds:.1f} s "
           f"({summary.fps:.1f} frames/s)")
     return 0
 
@@ -100,6 +101,28 @@ def _cmd_dream_to_bag(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from holo_pose_ros.bag_calibration import calibrate_bag, calibration_document, format_calibration
+
+    result = calibrate_bag(args.bag, args.model, args.joint_states_topic, image_topic=args.image_topic,
+                           camera_info_topic=args.info_topic, window=args.window, tolerance_s=args.tolerance,
+                           compare=not args.no_compare, backend=args.backend, limit=args.limit,
+                           progress=not args.quiet)
+    print(format_calibration(result))
+    if result.calibration is None:
+        return 1
+    from holo_pose_ros.model.weights import read_card
+
+    import yaml
+
+    child = args.child_frame_id or f"{read_card(args.model)[1]['robot']}_base_link"
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(calibration_document(result, args.bag, args.model, child), sort_keys=False))
+    print(f"calibration: {out}")
+    return 0
+
+
 def _cmd_bag_eval(args: argparse.Namespace) -> int:
     from holo_pose_ros.bags import bag_eval
     from holo_pose_ros.evaluation.report import format_report
@@ -168,6 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--width", type=int, default=640, help="image width, pixels")
     g.add_argument("--height", type=int, default=480, help="image height, pixels")
     g.add_argument("--config", default="randomized", help="generator YAML: name in config/generate or a path")
+    g.add_argument("--second-robot", default=None, help="another robot type standing beside the first in every "
+                   "frame (each robot's ground truth its own DREAM object; config/generate/scene/second_robot.yaml)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=_cmd_generate)
 
@@ -253,6 +278,25 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: the model card's validated choice)")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_cmd_bag_eval)
+
+    c = sub.add_parser("calibrate", help="camera-to-robot calibration from a ROS 2 bag with the robot's trusted "
+                                         "joint states, without DDS; writes calibration.yaml")
+    c.add_argument("--bag", required=True, help="input bag folder (images, camera_info, the robot's joint states)")
+    c.add_argument("--joint-states-topic", required=True, help="the robot's sensor_msgs/JointState topic")
+    c.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    c.add_argument("--out", required=True, help="calibration YAML to write")
+    c.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic (default: the bag's only one)")
+    c.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the bag's only one)")
+    c.add_argument("--child-frame-id", default=None, help="the robot base frame (default: <robot>_base_link)")
+    c.add_argument("--window", type=int, default=None, help="average only the last N usable frames (default: all)")
+    c.add_argument("--tolerance", type=float, default=None,
+                   help="seconds between an image and its joint state (default: the node's, config/estimator.yaml)")
+    c.add_argument("--no-compare", action="store_true",
+                   help="skip the comparison with the same frames estimated without the joints")
+    c.add_argument("--limit", type=int, default=None, help="only the first N images")
+    c.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=_cmd_calibrate)
 
     m = sub.add_parser("benchmark", help="per-stage latency, frames/s, GFLOPs and memory of the deployed pipeline")
     m.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")

@@ -199,6 +199,13 @@ class Estimator:
         method = "fitted" if self.fit else "feed-forward"
         return self.estimate_methods(image, K, known_joints, (method,))[method]
 
+    def calibrate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray) -> Estimate:
+        """The camera-to-robot pose with the robot's trusted joints (calibration mode): fitted to the detected 2D
+        keypoints when the network has fit heatmaps (the pose is then the only unknown of the geometry), else
+        the feed-forward heads with those joints."""
+        method = "fitted" if self.net.cfg.fit_heatmaps else "feed-forward"
+        return self.estimate_methods(image, K, np.asarray(known_joints, dtype=np.float64), (method,))[method]
+
     def estimate_methods(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None,
                          methods: tuple[str, ...] = METHODS) -> dict[str, Estimate]:
         """One detection, several ways of turning it into an estimate (the ablation of `holo-pose evaluate`):

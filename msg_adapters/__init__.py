@@ -5,7 +5,7 @@ image's header (stamp and frame_id), never the current time."""
 from msg_adapters.camera_info import CameraInfoError, camera_info_from_K, camera_info_to_K, check_image_size
 from msg_adapters.estimate import (joint_positions, keypoints_2d_from_msg, pose_array_points, pose_to_matrix,
                                    to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
-                                   to_transform_stamped)
+                                   to_pose_with_covariance, to_transform_stamped)
 from msg_adapters.header import copy_header, make_header, stamp_ns
 from msg_adapters.image import (DEFAULT_MAX_PIXELS, ENCODINGS, ImageConversionError, image_to_rgb,
                                 rgb_to_image)
@@ -15,7 +15,8 @@ from msg_adapters.joint_states import (joint_positions_by_name, joint_state_arra
 __all__ = [
     "CameraInfoError", "camera_info_from_K", "camera_info_to_K", "check_image_size",
     "joint_positions", "keypoints_2d_from_msg", "pose_array_points", "pose_to_matrix", "to_joint_state",
-    "to_keypoints_2d", "to_keypoints_3d", "to_markers", "to_pose_stamped", "to_transform_stamped",
+    "to_keypoints_2d", "to_keypoints_3d", "to_markers", "to_pose_stamped", "to_pose_with_covariance",
+    "to_transform_stamped",
     "copy_header", "make_header", "stamp_ns",
     "DEFAULT_MAX_PIXELS", "ENCODINGS", "ImageConversionError", "image_to_rgb", "rgb_to_image",
     "joint_positions_by_name", "joint_state_arrays", "joint_state_from_arrays", "to_diagnostic_status",

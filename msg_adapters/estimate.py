@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Duration
-from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, Quaternion, TransformStamped, Vector3
+from geometry_msgs.msg import (Point, Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped, Quaternion,
+                               TransformStamped, Vector3)
 from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
@@ -64,6 +65,19 @@ def to_pose_stamped(estimate: "Estimate", header) -> PoseStamped:
     T = np.asarray(estimate.T_cam_base, dtype=np.float64)
     pose = Pose(position=_point(T[:3, 3]), orientation=_quaternion(T[:3, :3]))
     return PoseStamped(header=copy_header(header), pose=pose)
+
+
+def to_pose_with_covariance(T_cam_base: np.ndarray, covariance: np.ndarray, header) -> PoseWithCovarianceStamped:
+    """A pose (4, 4), metres, with its (6, 6) covariance (x, y, z, rotation about x, y, z; row-major, as ROS
+    orders it), in the header's frame: the calibration of the camera to the robot base."""
+    T = np.asarray(T_cam_base, dtype=np.float64)
+    C = np.asarray(covariance, dtype=np.float64)
+    if T.shape != (4, 4) or C.shape != (6, 6) or not (np.isfinite(T).all() and np.isfinite(C).all()):
+        raise ValueError("a pose with covariance needs a finite 4 x 4 pose and a finite 6 x 6 covariance")
+    msg = PoseWithCovarianceStamped(header=copy_header(header))
+    msg.pose.pose = Pose(position=_point(T[:3, 3]), orientation=_quaternion(T[:3, :3]))
+    msg.pose.covariance = [float(v) for v in C.ravel()]
+    return msg
 
 
 def to_transform_stamped(estimate: "Estimate", header, child_frame_id: str) -> TransformStamped:

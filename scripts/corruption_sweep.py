@@ -144,9 +144,9 @@ def rewrite_bag(bag: Path, keep: Callable[[str, int], bool], extra: Callable | N
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from holo_pose_ros.bags import _typestore
+    from holo_pose_ros.bags import jazzy_typestore
 
-    typestore = _typestore()
+    typestore = jazzy_typestore()
     tmp = bag.with_name(bag.name + ".rewritten")
     with AnyReader([bag], default_typestore=typestore) as reader:
         writer = Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP)

@@ -119,14 +119,15 @@ def _random_distractors(cfg: dict, appearance: dict, rng: np.random.Generator, T
 
 def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, height: int) -> np.ndarray:
     """T_cam<-base of a camera that stays put while the robot moves (generator option camera.static): drawn as
-    for one frame, around the neutral pose's extent grown by camera.static_radius_scale so that most poses stay
-    in view."""
+    for one frame, aimed at the neutral pose's centre, its extent grown by camera.static_radius_scale and filling
+    camera.static_fill of the image, so that most poses stay in view."""
     import torch
 
     links = model.link_transforms(model.neutral[None].to(model.dtype))
     origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
     centre, radius = _robot_extent(origins)
-    return sample_camera(cfg, rng, centre, radius * float(cfg.get("static_radius_scale", 1.4)), K, height)
+    framing = {**cfg, "fill": cfg["static_fill"], "look_at_jitter": 0.0}
+    return sample_camera(framing, rng, centre, radius * float(cfg["static_radius_scale"]), K, height)
 
 
 def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, width: int, height: int,

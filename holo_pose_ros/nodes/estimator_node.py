@@ -16,13 +16,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped, TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from holo_pose_ros.calibration import RunningCalibration
+from holo_pose_ros.monitoring.stamps import NS, StampBuffer
 from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.estimator import Estimator
@@ -30,7 +32,8 @@ from holo_pose_ros.model.weights import read_card
 from holo_pose_ros.visualization import draw_skeleton
 from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
                           rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
-                          to_transform_stamped)
+                          to_pose_with_covariance, to_transform_stamped)
+from msg_adapters.joint_states import joint_positions_by_name
 
 try:
     from tf2_msgs.msg import TFMessage
@@ -64,7 +67,21 @@ PARAMETERS: ParameterSpecs = {
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
     "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
+    "joint_states_topic": ("Calibration mode: the robot's trusted sensor_msgs/JointState (matched by joint name); "
+                           "only the camera-to-robot pose is then estimated. Empty: off.", True, {}),
+    "joint_states_tolerance_s": ("Calibration mode: the joint state nearest the image stamp must be this close, "
+                                 "else the frame is skipped (counted).", True,
+                                 dict(floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10.0)])),
+    "calibration_window": ("Calibration mode: frames in the running robust average published on ~/calibration.",
+                           True, dict(integer_range=[IntegerRange(from_value=1, to_value=100000)])),
+    "calibration_max_translation_m": ("Calibration mode: frames farther than this from the window's median are "
+                                      "outliers.", True, dict(floating_point_range=[FloatingPointRange(
+                                          from_value=0.0, to_value=10.0)])),
+    "calibration_max_rotation_deg": ("Calibration mode: frames turned more than this from the window's medoid "
+                                     "are outliers.", True, dict(floating_point_range=[FloatingPointRange(
+                                         from_value=0.0, to_value=180.0)])),
 }
+JOINT_STATES_HISTORY_S = 5.0  # calibration mode: joint states kept this long behind the newest
 
 FIT_MODES = {"auto": None, "true": True, "false": False}
 
@@ -135,6 +152,9 @@ class Stats:
     dropped: int = 0
     not_found: int = 0
     no_camera_info: int = 0
+    no_joint_state: int = 0       # calibration mode: no joint state within the tolerance of the image stamp
+    joint_state_incomplete: int = 0  # calibration mode: the nearest joint state lacks joints (or has NaN ones)
+    calibration_frames: int = 0   # calibration mode: frames in the running calibration so far
     errors: Counter = field(default_factory=Counter)  # 'image', 'camera_info', 'estimator', 'internal'
     found: bool | None = None  # the last processed frame's
     confidence: float = float("nan")
@@ -204,6 +224,16 @@ class EstimatorNode(Node):
         if self._tf is None and self.publish_tf:
             self.get_logger().info("tf2_msgs is not installed: no /tf; the transform is on ~/transform")
         self._diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._joint_states: StampBuffer | None = None  # calibration mode: the robot's trusted joint states
+        if p["joint_states_topic"]:
+            self._joint_states = StampBuffer(JOINT_STATES_HISTORY_S)
+            self._tolerance_ns = int(p["joint_states_tolerance_s"] * NS)
+            self._calibration = RunningCalibration(p["calibration_window"], p["calibration_max_translation_m"],
+                                                   p["calibration_max_rotation_deg"])
+            self._pubs["calibration"] = self.create_publisher(PoseWithCovarianceStamped, "~/calibration", 10)
+            self._joints_sub = self.create_subscription(JointState, p["joint_states_topic"], self._on_joint_state,
+                                                        QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT,
+                                                                   history=HistoryPolicy.KEEP_LAST, depth=100))
         self._image_sub = self.create_subscription(Image, p["image_topic"], self._on_image, SENSOR_QOS)
         self._info_sub = self.create_subscription(CameraInfo, p["camera_info_topic"], self._on_camera_info, SENSOR_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
@@ -270,6 +300,36 @@ class EstimatorNode(Node):
             self.stats.received += 1
             self.stats.dropped += int(dropped)
 
+    def _on_joint_state(self, msg: JointState) -> None:
+        """Calibration mode: keep the robot's joints (the robot YAML's, picked by name) by stamp."""
+        try:
+            selection, stamp = joint_positions_by_name(msg, self.estimator.robot.joint_names)
+        except ValueError as e:
+            return self._error("joint_state", e)
+        with self._lock:
+            self._joint_states.add(stamp, selection)
+
+    def _known_joints(self, msg: Image):
+        """Calibration mode: the trusted joints (J,) for this image, or None (counted and logged) to skip it."""
+        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        with self._lock:
+            nearest = self._joint_states.nearest(stamp, self._tolerance_ns)
+        if nearest is None:
+            with self._lock:
+                self.stats.no_joint_state += 1
+            self._log_throttled("no_joint_state", f"no joint state on {self._joints_sub.topic_name} within "
+                                                  f"{self._tolerance_ns / 1e6:g} ms of the image stamp: frame skipped")
+            return None
+        selection = nearest[1]
+        if selection.missing or selection.nonfinite:
+            with self._lock:
+                self.stats.joint_state_incomplete += 1
+            lacking = ", ".join(selection.missing + selection.nonfinite)
+            self._log_throttled("joint_state_incomplete", f"the joint state lacks {lacking}: frame skipped",
+                                detail=lacking)
+            return None
+        return selection.values
+
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._camera = (msg, camera_info_to_K(msg, self.use_rectified_p))
@@ -303,8 +363,14 @@ class EstimatorNode(Node):
             check_image_size(info, image.shape[1], image.shape[0])
         except CameraInfoError as e:
             return self._error("camera_info", e)
+        known = None
+        if self._joint_states is not None and (known := self._known_joints(msg)) is None:
+            return
         try:
-            estimate = self.estimator.estimate(image, K)
+            if known is None:
+                estimate = self.estimator.estimate(image, K)
+            else:  # calibration: only the pose is estimated, with the robot's own joints
+                estimate = self.estimator.calibrate(image, K, known)
         except Exception as e:  # a model failure skips the frame, never the node
             return self._error("estimator", e)
         with self._lock:
@@ -317,6 +383,13 @@ class EstimatorNode(Node):
                                              f"{self.estimator.min_confidence:.2f})", "info")
             return
         self._publish(msg, image, estimate)
+        if known is not None:
+            self._calibration.add(estimate.T_cam_base)
+            calibration = self._calibration.estimate()
+            with self._lock:
+                self.stats.calibration_frames = calibration.n_used
+            self._pubs["calibration"].publish(to_pose_with_covariance(calibration.T_cam_base, calibration.covariance,
+                                                                      msg.header))
         with self._lock:
             self.stats.latency_ms = (time.monotonic() - received) * 1e3
 
@@ -362,6 +435,9 @@ class EstimatorNode(Node):
                 "confidence": f"{s.confidence:.3f}", "frames_received": s.received, "frames_processed": s.processed,
                 "frames_dropped": s.dropped, "robot_not_found": s.not_found, "skipped_no_camera_info": s.no_camera_info,
                 **{f"errors_{k}": s.errors[k] for k in ("image", "camera_info", "estimator", "internal")},
+                **({"calibration_frames": s.calibration_frames, "skipped_no_joint_state": s.no_joint_state,
+                    "skipped_joint_state_incomplete": s.joint_state_incomplete, "errors_joint_state":
+                    s.errors["joint_state"]} if self._joint_states is not None else {}),
                 "device": self.device, "model": self.model, "image_topic": self._image_sub.topic_name,
             }
         status = DiagnosticStatus(level=level, name=f"{self.get_name()}: pose estimation", message=message,
