@@ -18,3 +18,5 @@ def test_demo_runs_a_multi_process_graph_to_a_report(tmp_path, small_model_card)
     found = report["n_frames"] - report["n_not_found"]
     annotated = len(list((out / "annotated").glob("*.png")))
     assert annotated <= found and (annotated > 0) == (found > 0)  # the watcher may join after the first frame
+    # the joint-state monitor compared the estimate with the ground truth standing in for the robot's report
+    assert "monitor (estimate vs the ground-truth joints as the robot's report): " in run.stdout, run.stdout[-2000:]

@@ -1,7 +1,9 @@
 """The main job (`make demo`, console script `holo-pose-demo`): a real ROS 2 graph of separate processes on a
 small generated sample. The DREAM replay node publishes Image + CameraInfo in lockstep, the estimator node
-(shipped weights) answers, the evaluation node scores it live; this process watches the graph, prints each
-frame's result, saves the annotated frames, and ends with the summary (ADD/AUC, frames per second, latency)."""
+(shipped weights) answers, the evaluation node scores it live, and the joint-state monitor compares the estimate
+with the replay's ground-truth joints standing in for the robot's reported ones; this process watches the graph,
+prints each frame's result, saves the annotated frames, and ends with the summary (ADD/AUC, frames per second,
+latency) and the monitor's status line."""
 
 from __future__ import annotations
 
@@ -18,9 +20,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
-from holo_pose_ros.bags import ESTIMATOR_NS
+from holo_pose_ros.bags import ESTIMATOR_NS, GROUND_TRUTH_NS
 from holo_pose_ros.nodes.processes import private_graph_env, start_node, stop_nodes
 from msg_adapters import image_to_rgb, stamp_ns
+
+
+MONITOR_NAME = "joint_state_monitor"
+LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
 
 class Watcher(Node):
@@ -33,6 +39,8 @@ class Watcher(Node):
         self.create_subscription(JointState, f"{ESTIMATOR_NS}/joint_states", self._on_joints, 10)
         self.create_subscription(Image, f"{ESTIMATOR_NS}/annotated", self._on_annotated, 10)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+        self.monitor_status: tuple[int, str] | None = None  # the joint-state monitor's last (level, message)
+        self.monitor_levels: list[int] = []
 
     def _on_joints(self, msg: JointState) -> None:
         self.arrivals.append(time.monotonic())
@@ -46,6 +54,11 @@ class Watcher(Node):
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
+            if status.name.startswith(MONITOR_NAME):
+                self.monitor_status = (int.from_bytes(status.level, "little") if isinstance(status.level, bytes)
+                                       else int(status.level), status.message)
+                self.monitor_levels.append(self.monitor_status[0])
+                continue
             if "latency_ms" in values and values["latency_ms"] != "nan" and float(values.get("rate_hz", 0)) > 0:
                 self.latency_ms.append(float(values["latency_ms"]))
                 self.inference_ms.append(float(values["inference_ms"]))
@@ -66,6 +79,10 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
         "estimator": start_node("estimator_node", {"robot": robot, "model": model}, logs / "estimator.log", env),
         "evaluation": start_node("evaluation_node", {"robot": robot, "report_path": str(report_path.resolve())},
                                  logs / "evaluation.log", env),
+        # the replay's ground-truth joints play the robot's reported joint states
+        "monitor": start_node("joint_state_monitor_node", {"robot": robot, "model": model,
+                                                           "reported_topic": f"{GROUND_TRUTH_NS}/joint_states"},
+                              logs / "monitor.log", env),
     }
     rclpy.init()
     watcher = Watcher(out / "annotated")
@@ -89,7 +106,7 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
                 print(f"demo: no report after {timeout_s:.0f} s", file=sys.stderr)
                 code = 1
                 break
-            for name in ("estimator", "replay"):
+            for name in ("estimator", "replay", "monitor"):
                 if processes[name].poll() not in (None, 0):
                     print(f"demo: the {name} node stopped; see {logs / (name + '.log')}", file=sys.stderr)
                     code = 1
@@ -112,6 +129,13 @@ def run_demo(model: str, robot: str, frames: int, out: Path, seed: int, timeout_
           f"ADD AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm'] or float('nan'):.1f} mm; "
           f"estimator inference {np.nanmedian(inf):.0f} ms, latency (image received -> published) median "
           f"{np.nanmedian(lat):.0f} ms; lockstep throughput {throughput:.1f} frames/s")
+    if watcher.monitor_status is not None:
+        level, message = watcher.monitor_status
+        raised = sum(lv in (1, 2) for lv in watcher.monitor_levels)
+        print(f"monitor (estimate vs the ground-truth joints as the robot's report): {LEVELS.get(level, level)}: "
+              f"{message} ({raised} of {len(watcher.monitor_levels)} status messages WARN or ERROR)")
+    else:
+        print("monitor: no status received", file=sys.stderr)
     print(f"annotated frames: {out / 'annotated'}; report: {report_path}")
     return 0
 
