@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test", action="append", required=True, help="DIR:LOOK of a held-out DREAM folder")
     parser.add_argument("--lifter", default=None, help="lifter card to ship with the model (holo-pose train-lifter)")
     parser.add_argument("--log", default=None, help="the run's log.csv, kept as docs/training_logs/<run>.csv")
+    parser.add_argument("--resume-config", default=None, help="the training recipe the next run resumes with "
+                                                              "(default: config/train/<run folder name>.yaml)")
     parser.add_argument("--validation", default=None, help="generated validation folder (never a test set) on which "
                                                            "the ablation chooses the default: fitted or feed-forward")
     args = parser.parse_args(argv)
@@ -88,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
         shutil.copy(args.log, ROOT / "docs" / "training_logs" / f"{run}.csv")
     shipped = {k: card[k] for k in ("training", "validation") if k in card}
-    run_config = ROOT / "config" / "train" / f"{Path(args.card).resolve().parent.name}.yaml"
+    run_config = ROOT / (args.resume_config or Path("config") / "train" / f"{Path(args.card).resolve().parent.name}.yaml")
     if "training" in shipped and run_config.exists():  # the next run of the campaign warm-starts from this card
         shipped["training"]["resume_command"] = f"holo-pose train --config {run_config.relative_to(ROOT)}"
     out = save_model(net, robot.name, weights_dir() / args.name, {**extra, **shipped, "test": metrics},
