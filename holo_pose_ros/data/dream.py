@@ -8,6 +8,7 @@ import json
 import logging
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -496,11 +497,22 @@ def _write_atomically(path: Path, text: str) -> None:
 
 class DreamWriter:
     """Writes frames as a DREAM/NDDS folder that DreamReader, DREAM and RoboPose read: 3D values in `units`
-    ('m' or 'cm'), pixels unscaled, object pose as NDDS quaternion_xyzw + location."""
+    ('m' or 'cm'), pixels unscaled, object pose as NDDS quaternion_xyzw + location.
+
+    `others`: further robots in the same images (of other types: a DreamReader finds its robot's object by class,
+    so each reads its own); each frame then lists one object per robot, `robot` first, and sim_state the joints of
+    all of them, which must therefore have distinct joint names."""
 
     def __init__(self, folder: str | Path, robot: RobotModel | str, K, width: int, height: int, units: str = "m",
-                 image_ext: str = "jpg", jpeg_quality: int = 95):
+                 image_ext: str = "jpg", jpeg_quality: int = 95, others: Sequence[RobotModel | str] = ()):
         self.robot = _float64_model(robot)
+        self.others = [_float64_model(o) for o in others]
+        names = [r.name for r in (self.robot, *self.others)]
+        if len(set(names)) < len(names):
+            raise ValueError(f"robots of one DREAM folder must be of different types (their object class), got {names}")
+        joints = [j for r in (self.robot, *self.others) for j in r.joint_names]
+        if len(set(joints)) < len(joints):
+            raise ValueError(f"robots {names} share joint names: sim_state could not tell their joints apart")
         self.folder = Path(folder)
         self.K = np.asarray(K, dtype=np.float64)
         if self.K.shape != (3, 3) or not np.isfinite(self.K).all() or self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
@@ -525,18 +537,26 @@ class DreamWriter:
             "captured_image_size": size,
         }]}
         _write_atomically(self.folder / CAMERA_FILE, json.dumps(camera, indent=2))
-        _write_atomically(self.folder / OBJECT_FILE, json.dumps({"exported_object_classes": [self.robot.name]}, indent=2))
+        _write_atomically(self.folder / OBJECT_FILE, json.dumps(
+            {"exported_object_classes": [r.name for r in (self.robot, *self.others)]}, indent=2))
 
-    def _frame_json(self, joints: np.ndarray, T: np.ndarray, kp3d: np.ndarray, extra: dict | None) -> dict:
-        """The NDDS frame dictionary (3D values converted to file units)."""
+    def _object_json(self, robot: RobotModel, T: np.ndarray, kp3d: np.ndarray) -> dict:
+        """One robot's NDDS object (3D values converted to file units)."""
         quaternion = matrix_to_quaternion_xyzw(T[:3, :3] @ UE_TO_OPENCV.T)  # inverse of R = R(q)·UE_TO_OPENCV
         uv = project(kp3d, self.K)
         keypoints = [{"name": n, "location": (p * self.factor).tolist(), "projected_location": q.tolist()}
-                     for n, p, q in zip(self.robot.keypoint_names, kp3d, uv)]
+                     for n, p, q in zip(robot.keypoint_names, kp3d, uv)]
+        return {"class": robot.name, "visibility": 1, "location": (T[:3, 3] * self.factor).tolist(),
+                "quaternion_xyzw": quaternion.tolist(), "keypoints": keypoints}
+
+    def _frame_json(self, joints: np.ndarray, T: np.ndarray, kp3d: np.ndarray, extra: dict | None,
+                    others: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]] = ()) -> dict:
+        """The NDDS frame dictionary; `others`: (joints, T, keypoints_3d) of each of self.others."""
+        robots = [(self.robot, joints, T, kp3d)] + [(r, *o) for r, o in zip(self.others, others)]
         data = {
-            "objects": [{"class": self.robot.name, "visibility": 1, "location": (T[:3, 3] * self.factor).tolist(),
-                         "quaternion_xyzw": quaternion.tolist(), "keypoints": keypoints}],
-            "sim_state": {"joints": [{"name": n, "position": float(v)} for n, v in zip(self.robot.joint_names, joints)]},
+            "objects": [self._object_json(r, t, k) for r, _, t, k in robots],
+            "sim_state": {"joints": [{"name": n, "position": float(v)} for r, q, _, _ in robots
+                                     for n, v in zip(r.joint_names, q)]},
         }
         return {**data, **(extra or {})}
 
@@ -559,14 +579,18 @@ class DreamWriter:
                                  f"{mask.dtype}")
         return rgb, joints, T, mask
 
-    def write(self, index: int, rgb, joints, T_cam_base, keypoints_3d=None, mask=None, extra: dict | None = None) -> Path:
+    def write(self, index: int, rgb, joints, T_cam_base, keypoints_3d=None, mask=None, extra: dict | None = None,
+              others: Sequence[tuple] = ()) -> Path:
         """Write frame `index` (rgb (H, W, 3) uint8, joints (J,) rad/m, T_cam<-base (4, 4) metres, optional
-        keypoints_3d (N, 3) metres in the camera frame (default: FK), mask (H, W), extra top-level JSON keys);
-        returns the JSON path, written last so that a reader never sees a frame without its image."""
+        keypoints_3d (N, 3) metres in the camera frame (default: FK), mask (H, W), extra top-level JSON keys,
+        and for each robot of self.others its (joints, T_cam<-base), keypoints by FK); returns the JSON path,
+        written last so that a reader never sees a frame without its image."""
         if int(index) < 0:
             raise ValueError(f"index must be >= 0, got {index}")
         if extra is not None and {"objects", "sim_state"} & set(extra):
             raise ValueError(f"extra may not replace 'objects' or 'sim_state', got keys {sorted(extra)}")
+        if len(others) != len(self.others):
+            raise ValueError(f"others: expected (joints, T_cam_base) of {len(self.others)} robot(s), got {len(others)}")
         rgb, joints, T, mask = self._checked(rgb, joints, T_cam_base, mask)
         if keypoints_3d is None:
             kp3d = self.robot.keypoints_in_camera(torch.from_numpy(joints), torch.from_numpy(T))[0].numpy()
@@ -574,16 +598,29 @@ class DreamWriter:
             kp3d = np.asarray(keypoints_3d, dtype=np.float64)
         if kp3d.shape != (self.robot.n_keypoints, 3) or not np.isfinite(kp3d).all():
             raise ValueError(f"keypoints_3d: expected ({self.robot.n_keypoints}, 3) finite values, got {kp3d.shape}")
-        if (kp3d[:, 2] <= 0).any():
-            raise ValueError(f"keypoints_3d: every keypoint must be in front of the camera (z > 0), min z is "
-                             f"{kp3d[:, 2].min():.3f} m")
+        placed = [self._other(robot, q, T_other) for robot, (q, T_other) in zip(self.others, others)]
+        for robot, points in [(self.robot, kp3d)] + [(r, p[2]) for r, p in zip(self.others, placed)]:
+            if (points[:, 2] <= 0).any():
+                raise ValueError(f"keypoints_3d: every keypoint must be in front of the camera (z > 0), min z of "
+                                 f"{robot.name} is {points[:, 2].min():.3f} m")
         name = f"{int(index):06d}"
         self._imwrite(self.folder / f"{name}.rgb.{self.image_ext}", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), self._encode)
         if mask is not None:
             self._imwrite(self.folder / f"{name}.mask.png", mask, [])
         path = self.folder / f"{name}.json"
-        path.write_text(json.dumps(self._frame_json(joints, T, kp3d, extra)))
+        path.write_text(json.dumps(self._frame_json(joints, T, kp3d, extra, placed)))
         return path
+
+    @staticmethod
+    def _other(robot: RobotModel, joints, T_cam_base) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(joints, T, keypoints_3d by FK) of a further robot, checked."""
+        q = np.asarray(joints, dtype=np.float64).reshape(-1)
+        T = np.asarray(T_cam_base, dtype=np.float64)
+        if q.shape != (robot.n_joints,) or not np.isfinite(q).all():
+            raise ValueError(f"others: {robot.name} joints: expected {robot.n_joints} finite values, got {q.shape}")
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"others: {robot.name} T_cam_base: expected a finite (4, 4) matrix, got {T.shape}")
+        return q, T, robot.keypoints_in_camera(torch.from_numpy(q), torch.from_numpy(T))[0].numpy()
 
     @staticmethod
     def _imwrite(path: Path, image: np.ndarray, params: list[int]) -> None:
