@@ -14,10 +14,20 @@ ParameterSpecs = dict[str, tuple[str, bool, dict]]
 
 
 def load_defaults(file_name: str, node_name: str, specs: ParameterSpecs) -> dict:
-    """`node_name: ros__parameters:` of config/<file_name>; ValueError unless it names exactly the node's parameters."""
+    """`node_name: ros__parameters:` of config/<file_name>, or the file's only node section when none has that name
+    (a node renamed with `-r __node:=other` keeps its defaults); ValueError unless it names exactly the node's
+    parameters, or when the file has several sections and none of `node_name`."""
     path = config_dir() / file_name
     with open(path) as f:
-        defaults = yaml.safe_load(f)[node_name]["ros__parameters"]
+        sections = yaml.safe_load(f)
+    if not isinstance(sections, dict) or not sections:
+        raise ValueError(f"{path}: expected '<node name>: ros__parameters: ...'")
+    if node_name not in sections and len(sections) > 1:
+        raise ValueError(f"{path}: no section of node '{node_name}' (has {', '.join(map(str, sections))})")
+    section = sections[node_name] if node_name in sections else next(iter(sections.values()))
+    defaults = section.get("ros__parameters") if isinstance(section, dict) else None
+    if not isinstance(defaults, dict):
+        raise ValueError(f"{path}: no 'ros__parameters' mapping")
     if set(defaults) != set(specs):
         raise ValueError(f"{path}: parameters {sorted(set(defaults) ^ set(specs))} are not the node's")
     return defaults
