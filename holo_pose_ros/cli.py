@@ -101,6 +101,14 @@ def _cmd_dream_to_bag(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bag_inputs(parser: argparse.ArgumentParser, bag_help: str) -> None:
+    """The arguments every bag command shares: the bag, the model, the image and CameraInfo topics."""
+    parser.add_argument("--bag", required=True, help=bag_help)
+    parser.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    parser.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic (default: the bag's only one)")
+    parser.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the bag's only one)")
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from holo_pose_ros.bag_calibration import calibrate_bag, calibration_document, format_calibration
 
@@ -111,7 +119,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     print(format_calibration(result))
     if result.calibration is None:
         return 1
-    from holo_pose_ros.model.weights import read_card
+    from holo_pose_ros.model.cards import read_card
 
     import yaml
 
@@ -260,11 +268,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bag-eval", help="estimate every image of a ROS 2 bag (mcap or sqlite3) without DDS; write "
                                         "the estimates as a bag, and OUT/report.json when it has ground truth")
-    b.add_argument("--bag", required=True, help="input bag folder")
-    b.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
+    _bag_inputs(b, "input bag folder")
     b.add_argument("--out", required=True, help="output bag folder (must not exist); report.json goes inside")
-    b.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic (default: the bag's only one)")
-    b.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the bag's only one)")
     b.add_argument("--use-rectified-p", action="store_true", help="K from CameraInfo.p instead of CameraInfo.k")
     b.add_argument("--min-confidence", type=float, default=None,
                    help="robot-presence probability below which a frame is not found (default: the estimator's)")
@@ -281,12 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("calibrate", help="camera-to-robot calibration from a ROS 2 bag with the robot's trusted "
                                          "joint states, without DDS; writes calibration.yaml")
-    c.add_argument("--bag", required=True, help="input bag folder (images, camera_info, the robot's joint states)")
+    _bag_inputs(c, "input bag folder (images, camera_info, the robot's joint states)")
     c.add_argument("--joint-states-topic", required=True, help="the robot's sensor_msgs/JointState topic")
-    c.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
     c.add_argument("--out", required=True, help="calibration YAML to write")
-    c.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic (default: the bag's only one)")
-    c.add_argument("--info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the bag's only one)")
     c.add_argument("--child-frame-id", default=None, help="the robot base frame (default: <robot>_base_link)")
     c.add_argument("--window", type=int, default=None, help="average only the last N usable frames (default: all)")
     c.add_argument("--tolerance", type=float, default=None,

@@ -106,7 +106,7 @@ class Estimator:
             kwargs["fit"] = bool(validated)
         if "lifter" in card and "lifter" not in kwargs:
             from holo_pose_ros.model.lifter import load_lifter
-            from holo_pose_ros.model.weights import resolve_model
+            from holo_pose_ros.model.cards import resolve_model
 
             kwargs["lifter"] = load_lifter(resolve_model(model).parent / card["lifter"]).eval()
         network = None

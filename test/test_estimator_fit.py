@@ -29,7 +29,7 @@ def test_the_shipped_panda_model_has_heatmaps_and_a_lifter(estimator):
 
 
 def test_the_default_method_is_the_one_the_card_validated():
-    from holo_pose_ros.model.weights import read_card
+    from holo_pose_ros.model.cards import read_card
 
     validated = read_card("panda")[1]["estimator"]
     assert Estimator.from_model("panda").fit == validated["fit"]

@@ -10,7 +10,6 @@ import os
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.nodes.estimator_node import EstimatorNode, main
+from graph_helpers import spin_until
 from msg_adapters import image_to_rgb, keypoints_2d_from_msg, rgb_to_image
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -37,19 +37,6 @@ OUTPUTS = {"joint_states": JointState, "pose": PoseStamped, "transform": Transfo
            "keypoints_2d": PointCloud2, "markers": MarkerArray, "annotated": Image}
 FRAME_ID = "camera_color_optical_frame"
 _DOMAINS = itertools.count(100 + (os.getpid() % 40) * 3)  # a few ids of our own, away from other test runs
-
-
-def spin_until(executor, predicate, timeout: float = 20.0, action=None, period: float = 0.1) -> bool:
-    """Spin `executor` until `predicate()` holds or `timeout` s pass, calling `action()` every `period` s."""
-    deadline, next_action = time.monotonic() + timeout, 0.0
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        if action is not None and time.monotonic() >= next_action:
-            action()
-            next_action = time.monotonic() + period
-        executor.spin_once(timeout_sec=0.02)
-    return predicate()
 
 
 def header_of(msg) -> Header:

@@ -25,6 +25,7 @@ from holo_pose_ros.monitoring import ERROR, OK, JointNameMap, wrap_angle
 from holo_pose_ros.nodes.dream_replay_node import DreamReplayNode
 from holo_pose_ros.nodes.estimator_node import EstimatorNode
 from holo_pose_ros.nodes.joint_state_monitor_node import JointStateMonitorNode, main
+from graph_helpers import spin_until
 from msg_adapters import (joint_positions_by_name, joint_state_arrays, joint_state_from_arrays, make_header,
                           stamp_ns, to_diagnostic_status)
 
@@ -65,19 +66,6 @@ def test_joint_state_adapters_round_trip_and_pick_by_the_robots_names():
     assert status.level == DiagnosticStatus.ERROR and status.values[0].key == "k" and status.values[0].value == "1"
 
 
-def spin_until(executor, predicate, timeout: float = 10.0, action=None, period: float = 0.05) -> bool:
-    """Spin until `predicate()` holds or `timeout` s pass, calling `action()` every `period` s."""
-    deadline, next_action = time.monotonic() + timeout, 0.0
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        if action is not None and time.monotonic() >= next_action:
-            action()
-            next_action = time.monotonic() + period
-        executor.spin_once(timeout_sec=0.01)
-    return predicate()
-
-
 def monitor_statuses(messages: list[DiagnosticArray]) -> list[dict]:
     """The monitor's statuses on /diagnostics, each as {'level', 'message', **values}."""
     out = []
@@ -110,7 +98,7 @@ class Graph:
         return self.received[name]
 
     def spin_until(self, predicate, timeout: float = 10.0, action=None) -> bool:
-        return spin_until(self.executor, predicate, timeout, action)
+        return spin_until(self.executor, predicate, timeout, action, period=0.05)
 
     def close(self) -> None:
         for node in reversed(self.nodes):

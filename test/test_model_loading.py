@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from holo_pose_ros.model.lifter import load_lifter
-from holo_pose_ros.model.weights import ModelLoadError, file_sha256, load_model, shipped_models
+from holo_pose_ros.model.cards import ModelLoadError, file_sha256, shipped_models
+from holo_pose_ros.model.weights import load_model
 from holo_pose_ros.nodes.estimator_node import main as estimator_main
 from holo_pose_ros.resources import weights_dir
 from small_model import save_small_model

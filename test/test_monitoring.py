@@ -6,9 +6,10 @@ import math
 import numpy as np
 import pytest
 
+from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.monitoring import (ERROR, OK, WARN, JointNameMap, JointStateMonitor, JointThreshold, JointWatch,
                                       StampBuffer, StampMatcher, card_joint_errors, joint_difference, joint_kinds,
-                                      joint_thresholds, parse_overrides, parse_pairs, read_model_card, select_by_name,
+                                      joint_thresholds, parse_overrides, parse_pairs, select_by_name,
                                       wrap_angle)
 from holo_pose_ros.robots.spec import load_robot_spec
 
@@ -249,7 +250,7 @@ def test_thresholds_from_the_shipped_card_overrides_and_defaults():
     spec = load_robot_spec("panda")
     kinds = joint_kinds(spec)
     assert kinds == ["revolute"] * 7 + ["prismatic"]
-    _, card = read_model_card("panda")
+    _, card = read_card("panda")
     measured = card_joint_errors(card, spec.joint_names)
     for name in spec.joint_names:  # the largest of the card's held-out means, in radians / metres
         tests = card["test"].values()

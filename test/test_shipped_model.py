@@ -13,7 +13,7 @@ from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.evaluation.run import evaluate_folder
 from holo_pose_ros.model.network import HolisticNet
-from holo_pose_ros.model.weights import shipped_models
+from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
 REGRESSION_BOUND_MM = {"panda": 350.0}  # the bound the Panda weights have been held to since they first shipped

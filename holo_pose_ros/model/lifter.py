@@ -19,7 +19,8 @@ from safetensors.torch import save_file
 from torch import nn
 
 from holo_pose_ros.geometry.rotation import rot6d_to_matrix
-from holo_pose_ros.model.weights import LIFTER_CARD_KEYS, ModelLoadError, check_card_keys, file_sha256, read_weights
+from holo_pose_ros.model.cards import LIFTER_CARD_KEYS, ModelLoadError, check_card_keys, file_sha256
+from holo_pose_ros.model.weights import read_weights
 from holo_pose_ros.resources import config_with_overrides, weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 

@@ -17,7 +17,7 @@ import torch
 
 from holo_pose_ros import __version__
 from holo_pose_ros.model.network import HolisticNet, example_inputs
-from holo_pose_ros.model.weights import read_card
+from holo_pose_ros.model.cards import read_card
 
 LOG = logging.getLogger(__name__)
 OPSET = 18

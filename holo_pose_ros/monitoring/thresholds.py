@@ -9,12 +9,8 @@ import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-
-import yaml
 
 from holo_pose_ros.monitoring.joints import ANGULAR_KINDS, LINEAR_KINDS
-from holo_pose_ros.resources import weights_dir
 from holo_pose_ros.robots.description import urdf_text
 from holo_pose_ros.robots.spec import RobotSpec
 
@@ -37,26 +33,6 @@ def joint_kinds(spec: RobotSpec) -> list[str]:
                              f"{', '.join(ANGULAR_KINDS + LINEAR_KINDS)} joints")
         kinds.append(kind)
     return kinds
-
-
-def read_model_card(model: str | Path) -> tuple[Path, dict]:
-    """(path, contents) of the card of a shipped model name ('panda'), a card (.yaml) or a weights file
-    (.safetensors, its card beside it): holo_pose_ros.model.weights.resolve_model's rules, without importing torch."""
-    path = Path(model)
-    if path.suffix == ".safetensors":
-        path = path.with_suffix(".yaml")
-    elif not path.suffix:
-        path = weights_dir() / f"{model}.yaml"
-        if not path.is_file():
-            shipped = sorted(p.stem for p in weights_dir().glob("*.yaml") if (p.with_suffix(".safetensors")).is_file())
-            raise ValueError(f"no shipped model '{model}'; shipped: {', '.join(shipped) or 'none'}")
-    if not path.is_file():
-        raise FileNotFoundError(f"model card not found: {path}")
-    with open(path) as f:
-        card = yaml.safe_load(f)
-    if not isinstance(card, dict):
-        raise ValueError(f"{path}: not a model card (expected a mapping)")
-    return path, card
 
 
 @dataclass(frozen=True)

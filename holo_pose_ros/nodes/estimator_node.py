@@ -28,7 +28,7 @@ from holo_pose_ros.monitoring.stamps import NS, StampBuffer
 from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.model.weights import read_card
+from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.visualization import draw_skeleton
 from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
                           rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,

@@ -28,7 +28,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 
 from holo_pose_ros.monitoring import (JointNameMap, JointStateMonitor, card_joint_errors, joint_kinds,
-                                      joint_thresholds, parse_overrides, parse_pairs, read_model_card)
+                                      joint_thresholds, parse_overrides, parse_pairs)
+from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
 from holo_pose_ros.robots.spec import load_robot_spec
@@ -94,7 +95,7 @@ class JointStateMonitorNode(Node):
         robot_names = names_map.robot_names(spec.joint_names)
         measured, self.card_path = {}, None
         if p["model"]:
-            self.card_path, card = read_model_card(p["model"])
+            self.card_path, card = read_card(p["model"])
             if card.get("robot") != spec.name:
                 raise ValueError(f"model '{p['model']}' is for robot '{card.get('robot')}', but robot:={p['robot']}")
             measured = card_joint_errors(card, spec.joint_names, p["card_test_set"])

@@ -56,7 +56,7 @@ class LatencyProbe(Node):
 def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float = 30.0, backend: str = "onnxruntime",
                  tracking: bool = False, threads: int = 0, startup_timeout_s: float = 300.0) -> dict:
     """Run the estimator node on `model` and time `frames` images published at `rate_hz` (after a warm-up)."""
-    from holo_pose_ros.model.weights import read_card
+    from holo_pose_ros.model.cards import read_card
 
     robot = read_card(model)[1]["robot"]  # the node loads the weights; here only the robot's name is needed
     reader = DreamReader(data, robot)

@@ -63,7 +63,7 @@ def _campaign_so_far(init_from: str | None) -> tuple[int, float]:
     """(views, wall-clock training hours) that the warm-start model's card records, (0, 0) without one."""
     if not init_from:
         return 0, 0.0
-    from holo_pose_ros.model.weights import read_card
+    from holo_pose_ros.model.cards import read_card
 
     training = read_card(init_from)[1].get("training") or {}
     return int(training.get("cumulative_views", training.get("samples", 0))), float(training.get("cumulative_train_hours", 0.0))
