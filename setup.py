@@ -80,6 +80,7 @@ setup(
             "evaluation_node = holo_pose_ros.nodes.evaluation_node:main",
             "holo-pose-demo = holo_pose_ros.nodes.demo:main",
             "joint_state_monitor_node = holo_pose_ros.nodes.joint_state_monitor_node:main",
+            "holo-pose-monitor = holo_pose_ros.nodes.monitor_launcher:main",
         ],
     },
 )
