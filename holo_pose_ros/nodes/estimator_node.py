@@ -11,7 +11,7 @@ import re
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,7 +41,7 @@ except ImportError:  # not on PyPI: /tf needs a ROS distribution; ~/transform ca
     TFMessage = None
 
 NODE_NAME = "holo_pose_estimator"
-LOG_PERIOD_S = 5.0  # a problem that repeats unchanged is logged at most once per period
+LOG_PERIOD_S = 5.0  # a problem whose reason repeats is logged at most once per period (LogThrottle)
 SENSOR_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=1,
                         durability=DurabilityPolicy.VOLATILE)
 # name -> (description, read_only, ranges); defaults live in config/estimator.yaml only
@@ -113,6 +113,41 @@ def resolve_device(device: str) -> tuple[str, str | None]:
     return name, None
 
 
+def reason_template(text: str) -> str:
+    """A problem's reason without its particulars: numbers, quoted values and bracketed lists blanked, so that
+    "data is 1000 bytes" and "data is 2000 bytes" are one reason, "unsupported image encoding 'a'" and '...'b''
+    another."""
+    text = re.sub(r"\[[^\]]*\]", "[...]", re.sub(r"'[^']*'", "'...'", text))
+    return re.sub(r"(?<![\w.])[-+]?(\d+(\.\d*)?(e[-+]?\d+)?|nan|inf)(?!\w)", "N", text, flags=re.IGNORECASE)
+
+
+class LogThrottle:
+    """When to log a recurring problem: each reason (reason_template of its detail) under a key at once the first
+    time, then at most once per `period_s`, with the count of lines held back meanwhile. Remembers the
+    `max_reasons` most recent reasons of each key. Thread-safe."""
+
+    def __init__(self, period_s: float = LOG_PERIOD_S, max_reasons: int = 32):
+        self.period_s, self.max_reasons = period_s, max_reasons
+        self._reasons: dict[str, OrderedDict[str, list]] = {}  # key -> reason -> [time of last line, held back]
+        self._lock = threading.Lock()
+
+    def check(self, key: str, detail: str, now: float) -> int | None:
+        """None: do not log now; else log, and the int is how many lines of this reason were held back."""
+        reason = reason_template(detail)
+        with self._lock:
+            reasons = self._reasons.setdefault(key, OrderedDict())
+            entry = reasons.get(reason)
+            if entry is not None and now - entry[0] < self.period_s:
+                entry[1] += 1
+                return None
+            held_back = entry[1] if entry is not None else 0
+            reasons[reason] = [now, 0]
+            reasons.move_to_end(reason)
+            while len(reasons) > self.max_reasons:
+                reasons.popitem(last=False)
+            return held_back
+
+
 class LatestFrame:
     """A one-slot buffer between the subscription and the worker: a new frame replaces an unprocessed one."""
 
@@ -152,6 +187,8 @@ class Stats:
     dropped: int = 0
     not_found: int = 0
     no_camera_info: int = 0
+    camera_info_received: int = 0
+    camera_info_rejected: int = 0  # CameraInfo messages with unusable intrinsics (also in errors['camera_info'])
     no_joint_state: int = 0       # calibration mode: no joint state within the tolerance of the image stamp
     joint_state_incomplete: int = 0  # calibration mode: the nearest joint state lacks joints (or has NaN ones)
     calibration_frames: int = 0   # calibration mode: frames in the running calibration so far
@@ -206,7 +243,7 @@ class EstimatorNode(Node):
 
         self.stats = Stats()
         self._lock = threading.Lock()
-        self._last_logged: dict[str, tuple[float, str]] = {}  # key -> (time, detail) of its last log line
+        self._throttle = LogThrottle()
         self._camera: tuple[CameraInfo, np.ndarray] | None = None  # (message, K) of the latest valid CameraInfo
         self._period_start, self._period_processed, self._period_errors = time.monotonic(), 0, 0
 
@@ -271,19 +308,20 @@ class EstimatorNode(Node):
                 setattr(self, param.name, param.value)
 
     def _log_throttled(self, key: str, text: str, level: str = "warning", detail: str = "") -> None:
-        """Log `text` at `level` (info | warning) unless `key` was logged with the same `detail` less than
-        LOG_PERIOD_S ago."""
-        now = time.monotonic()
-        last_time, last_detail = self._last_logged.get(key, (-LOG_PERIOD_S, None))
-        if detail != last_detail or now - last_time >= LOG_PERIOD_S:
-            self._last_logged[key] = (now, detail)
-            # one call site per severity: rclpy refuses a call site whose severity changes between calls
-            if level == "info":
-                self.get_logger().info(text)
-            elif level == "warning":
-                self.get_logger().warning(text)
-            else:
-                raise ValueError(f"unknown log level {level!r}")
+        """Log `text` at `level` (info | warning): a new reason (`detail` without its numbers) of `key` at once,
+        a repeated one at most every LOG_PERIOD_S (LogThrottle)."""
+        if level not in ("info", "warning"):
+            raise ValueError(f"unknown log level {level!r}")
+        held_back = self._throttle.check(key, detail, time.monotonic())
+        if held_back is None:
+            return
+        if held_back:
+            text += f" ({held_back} more like it not logged in the last {LOG_PERIOD_S:.0f} s)"
+        # one call site per severity: rclpy refuses a call site whose severity changes between calls
+        if level == "info":
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
 
     def _error(self, kind: str, error: Exception) -> None:
         """Count an error of `kind` and log it (a new reason at once, a repeated one throttled); skip the input."""
@@ -331,10 +369,14 @@ class EstimatorNode(Node):
         return selection.values
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        with self._lock:
+            self.stats.camera_info_received += 1
         try:
             self._camera = (msg, camera_info_to_K(msg, self.use_rectified_p))
         except CameraInfoError as e:
             self._camera = None  # never estimate with intrinsics that are known to be wrong
+            with self._lock:
+                self.stats.camera_info_rejected += 1
             self._error("camera_info", e)
 
     # -- inference (worker thread) ---------------------------------------------------------------------------
@@ -434,6 +476,7 @@ class EstimatorNode(Node):
                 "rate_hz": f"{rate:.2f}", "latency_ms": f"{s.latency_ms:.1f}", "inference_ms": f"{s.inference_ms:.1f}",
                 "confidence": f"{s.confidence:.3f}", "frames_received": s.received, "frames_processed": s.processed,
                 "frames_dropped": s.dropped, "robot_not_found": s.not_found, "skipped_no_camera_info": s.no_camera_info,
+                "camera_info_received": s.camera_info_received, "camera_info_rejected": s.camera_info_rejected,
                 **{f"errors_{k}": s.errors[k] for k in ("image", "camera_info", "estimator", "internal")},
                 **({"calibration_frames": s.calibration_frames, "skipped_no_joint_state": s.no_joint_state,
                     "skipped_joint_state_incomplete": s.joint_state_incomplete, "errors_joint_state":
