@@ -3,6 +3,7 @@ until Ctrl-C or until the node says it is done, then clean up."""
 
 from __future__ import annotations
 
+import gc
 from collections.abc import Callable
 
 import rclpy
@@ -22,6 +23,7 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         rclpy.logging.get_logger(name).fatal(f"cannot start: {e}")
         rclpy.try_shutdown()
         return 1
+    gc.freeze()  # the model and everything built so far live until exit: no collection walks them, exit is fast
     try:
         while rclpy.ok() and not done(node):
             rclpy.spin_once(node, timeout_sec=0.1)
