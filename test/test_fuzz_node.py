@@ -44,7 +44,9 @@ def test_log_stats_counts_lines_per_reason_and_period():
 
 
 def test_the_node_survives_a_seeded_fuzz_and_counts_what_was_sent(small_model_card, tmp_path):
-    result = run_fuzz(small_model_card, messages=200, seed=7, log=tmp_path / "estimator.log")
+    # 150 ms after each message: on this busy CPU, 50 ms let ~0.2 % of the messages be replaced in the node's
+    # depth-1 queue before its executor took them (scripts/fuzz_node.py reports those as "not received")
+    result = run_fuzz(small_model_card, messages=200, seed=7, log=tmp_path / "estimator.log", gap_s=0.15)
     report = format_fuzz(result)
     assert result["alive"], report
     assert result["answered"] == result["answers_expected"] > 40, report
@@ -52,5 +54,5 @@ def test_the_node_survives_a_seeded_fuzz_and_counts_what_was_sent(small_model_ca
     assert unaccounted(result["counted"]) == 0, report
     assert result["log"]["max_per_reason_per_period"] <= 1, report
     assert result["log"]["lines"] <= result["log"]["reasons"] * (1 + result["stream_s"] / LOG_PERIOD_S), report
-    assert expected_counters(fuzz_stream(200, 7))["frames_received"] + 0 == result["counted"]["frames_received"]
+    assert expected_counters(fuzz_stream(200, 7))["frames_received"] == result["counted"]["frames_received"]
     assert np.isfinite(result["peak_rss_mb"]) and result["peak_rss_mb"] > 0

@@ -557,11 +557,11 @@ def format_fuzz(r: dict) -> str:
     """The run as a text table."""
     lines = [f"fuzz: {r['messages']} messages, seed {r['seed']}, stream {r['stream_s']:.0f} s "
              f"(node start-up {r['startup_s']:.0f} s)", "",
-             f"{'kind':44s} {'sent':>6s} {'expected outcome':>30s} {'answered':>9s}"]
+             f"{'kind':44s} {'sent':>6s}  {'expected outcome':44s} {'answered':>9s}"]
     for kind, row in sorted(r["by_kind"].items(), key=lambda kv: -kv[1]["sent"]):
         outcomes = ", ".join(f"{k} {v}" for k, v in sorted(row.items()) if k not in ("sent", "answered"))
         answered = f"{row['answered']}/{row['answer']}" if row["answer"] else ""
-        lines.append(f"{kind:44s} {row['sent']:6d} {outcomes:>30s} {answered:>9s}")
+        lines.append(f"{kind:44s} {row['sent']:6d}  {outcomes:44s} {answered:>9s}")
     lines += ["", f"{'/diagnostics counter':28s} {'expected':>9s} {'counted':>9s}"]
     for key, value in r["expected"].items():
         mark = "" if r["counted"].get(key) == value else "   <-- differs"
