@@ -74,7 +74,7 @@ def run_soak(model: str, robot: str, minutes: float, rate: float, frames: int, o
 
     def on_diagnostics(msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name.startswith("holo_pose_estimator"):
+            if status.name.split(":")[0].endswith("holo_pose_estimator"):
                 diagnostics.update({kv.key: kv.value for kv in status.values})
 
     node.create_subscription(Image, "/image", on_image, sensor)

@@ -127,7 +127,7 @@ class DreamReplayNode(Node):
         self._state = "waiting"  # waiting -> priming -> running -> done
         self._since = time.monotonic()
         # lockstep bookkeeping
-        self._estimator_name = p["estimator"].rstrip("/").rsplit("/", 1)[-1]
+        self._estimator_name = "/" + p["estimator"].strip("/")  # its diagnostics are named by its full name
         self._handled: int | None = None  # the estimator's latest handled count
         self._no_camera_info: int | None = None
         self._expected: int | None = None  # its handled count once it has handled every frame sent so far

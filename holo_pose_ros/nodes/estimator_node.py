@@ -483,7 +483,7 @@ class EstimatorNode(Node):
                     s.errors["joint_state"]} if self._joint_states is not None else {}),
                 "device": self.device, "model": self.model, "image_topic": self._image_sub.topic_name,
             }
-        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: pose estimation", message=message,
+        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: pose estimation", message=message,
                                   hardware_id=self.device,
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         array = DiagnosticArray(status=[status])

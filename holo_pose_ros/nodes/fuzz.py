@@ -421,7 +421,7 @@ class NodeGraph:
 
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
-            if status.name.startswith("holo_pose_estimator"):
+            if status.name.split(":")[0].endswith("holo_pose_estimator"):
                 self.diagnostics = {kv.key: kv.value for kv in status.values}
                 self.diagnostics["level"], self.diagnostics["message"] = str(status.level), status.message
                 self.diagnostics_count += 1
