@@ -16,7 +16,7 @@ from holo_pose_ros.model.network import HolisticNet
 from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
-REGRESSION_BOUND_MM = {"panda": 350.0}  # the bound the Panda weights have been held to since they first shipped
+REGRESSION_BOUND_MM = {"panda": 200.0}  # the Panda weights measure 117 mm on these frames (skip-connection model); was 350
 
 
 def test_every_robot_has_shipped_weights():
