@@ -5,7 +5,6 @@ publisher in another process reaches the node."""
 
 from __future__ import annotations
 
-import itertools
 import os
 import subprocess
 import sys
@@ -29,14 +28,14 @@ from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.nodes.estimator_node import EstimatorNode, main
-from graph_helpers import spin_until
+from graph_helpers import domain_ids, spin_until
 from msg_adapters import image_to_rgb, keypoints_2d_from_msg, rgb_to_image
 
 ROOT = Path(__file__).resolve().parent.parent
 OUTPUTS = {"joint_states": JointState, "pose": PoseStamped, "transform": TransformStamped, "keypoints": PoseArray,
            "keypoints_2d": PointCloud2, "markers": MarkerArray, "annotated": Image}
 FRAME_ID = "camera_color_optical_frame"
-_DOMAINS = itertools.count(100 + (os.getpid() % 40) * 3)  # a few ids of our own, away from other test runs
+_DOMAINS = domain_ids(1, 49)  # a block of our own (test_joint_state_monitor: 50..99, test_monitor_launcher: 201..232)
 
 
 def header_of(msg) -> Header:

@@ -5,7 +5,6 @@ untrained network) -> monitor, with the replay's ground truth as the robot's rep
 
 from __future__ import annotations
 
-import itertools
 import math
 import os
 import time
@@ -25,7 +24,7 @@ from holo_pose_ros.monitoring import ERROR, OK, JointNameMap, wrap_angle
 from holo_pose_ros.nodes.dream_replay_node import DreamReplayNode
 from holo_pose_ros.nodes.estimator_node import EstimatorNode
 from holo_pose_ros.nodes.joint_state_monitor_node import JointStateMonitorNode, main
-from graph_helpers import spin_until
+from graph_helpers import domain_ids, spin_until
 from msg_adapters import (joint_positions_by_name, joint_state_arrays, joint_state_from_arrays, make_header,
                           stamp_ns, to_diagnostic_status)
 
@@ -34,7 +33,7 @@ MONITOR = "/joint_state_monitor"
 ESTIMATE_TOPIC = "/holo_pose_estimator/joint_states"
 PREFIX = "robot1/"  # the robot's joint names: robot1/<name>, and its gripper is robot1/gripper
 GRIPPER = "robot1/gripper"
-_DOMAINS = itertools.count(140 + (os.getpid() % 40) * 3)
+_DOMAINS = domain_ids(50, 99)
 
 
 @pytest.fixture(scope="module")

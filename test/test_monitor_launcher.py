@@ -35,11 +35,12 @@ from holo_pose_ros.monitoring import joint_kinds, wrap_angle
 from holo_pose_ros.nodes.monitor_launcher import ConfigError, load_monitor_config, main
 from holo_pose_ros.nodes.processes import parameter_value
 from holo_pose_ros.robots.kinematics import RobotModel
+from graph_helpers import domain_ids
 from msg_adapters import camera_info_from_K, make_header, rgb_to_image, stamp_ns
 from small_model import save_small_model
 
 ROOT = Path(__file__).resolve().parent.parent
-_DOMAINS = itertools.count(180 + (os.getpid() % 20) * 3)
+_DOMAINS = domain_ids(201, 232)
 ROBOTS = {"panda_left": "panda", "kuka_right": "kuka"}  # config name -> robot type
 # An estimator's exit after SIGTERM is its interpreter's final garbage collection: 1 s here when idle, up to 10 s
 # with four node processes at nice 19 beside a training run; past this the launcher SIGKILLs it (also under test).
