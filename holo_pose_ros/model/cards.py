@@ -51,17 +51,22 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def read_card(model: str | Path) -> tuple[Path, dict]:
-    """(card path, card) of a shipped name or a card/weights path; ModelLoadError when it is not a YAML mapping."""
-    card_path = resolve_model(model)
+def read_card_file(card_path: Path) -> dict:
+    """The YAML mapping of a model or lifter card file; ModelLoadError naming it when it is not one."""
     try:
         with open(card_path) as f:
             card = yaml.safe_load(f)
     except yaml.YAMLError as e:
-        raise ModelLoadError(f"{card_path}: not a valid YAML model card ({e})") from e
+        raise ModelLoadError(f"{card_path}: not a valid YAML card ({e})") from e
     if not isinstance(card, dict):
-        raise ModelLoadError(f"{card_path}: a model card must be a YAML mapping, got {type(card).__name__}")
-    return card_path, card
+        raise ModelLoadError(f"{card_path}: a card must be a YAML mapping, got {type(card).__name__}")
+    return card
+
+
+def read_card(model: str | Path) -> tuple[Path, dict]:
+    """(card path, card) of a shipped name or a card/weights path; ModelLoadError when it is not a YAML mapping."""
+    card_path = resolve_model(model)
+    return card_path, read_card_file(card_path)
 
 
 def check_card_keys(card_path: Path, card: dict, known: set[str], required: tuple[str, ...]) -> None:

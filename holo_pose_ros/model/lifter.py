@@ -19,7 +19,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from holo_pose_ros.geometry.rotation import rot6d_to_matrix
-from holo_pose_ros.model.cards import LIFTER_CARD_KEYS, ModelLoadError, check_card_keys, file_sha256
+from holo_pose_ros.model.cards import LIFTER_CARD_KEYS, ModelLoadError, check_card_keys, file_sha256, read_card_file
 from holo_pose_ros.model.weights import read_weights
 from holo_pose_ros.resources import config_with_overrides, weights_dir
 from holo_pose_ros.robots.kinematics import RobotModel
@@ -293,13 +293,9 @@ def load_lifter(path_or_card: str | Path, device: str | torch.device = "cpu", ro
     """The lifter (eval mode, float32) of a card or weights path, or a shipped name. `robot` (default: the card's
     robot from its YAML) must have the fit keypoints and joints the lifter was trained for, else ValueError."""
     card_path = resolve_lifter(path_or_card)
-    try:
-        with open(card_path) as f:
-            card = yaml.safe_load(f)
-    except yaml.YAMLError as e:
-        raise ModelLoadError(f"{card_path}: not a valid YAML lifter card ({e})") from e
-    if not isinstance(card, dict) or card.get("kind") != "lifter":
-        raise ModelLoadError(f"{card_path}: not a lifter card (kind: {card.get('kind') if isinstance(card, dict) else None})")
+    card = read_card_file(card_path)
+    if card.get("kind") != "lifter":
+        raise ModelLoadError(f"{card_path}: not a lifter card (kind: {card.get('kind')})")
     check_card_keys(card_path, card, LIFTER_CARD_KEYS, ("robot", "weights", "fit_keypoints", "model"))
     state = {k: v.float() for k, v in read_weights(card_path, card).items()}
     robot = robot or RobotModel(card["robot"], device=device)
