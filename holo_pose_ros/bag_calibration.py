@@ -85,8 +85,10 @@ def calibrate_bag(bag: str | Path, model: str | Path, joint_states_topic: str, i
             (camera_info_topic, CAMERA_INFO_MSGTYPE), (joint_states_topic, JOINT_STATE_MSGTYPE),
             (truth_topic, POSE_MSGTYPE)}]
         infos, joints, truth = [], StampBuffer(history_s=1e9), {}
-        for conn, t_ns, raw in read_messages(reader, small, bag, problems):
-            msg = reader.deserialize(raw, conn.msgtype)
+        for conn, t_ns, msg in read_messages(reader, small, bag, problems):
+            if msg is None:
+                skipped["undeserializable message"] += 1
+                continue
             if conn.topic == camera_info_topic:
                 infos.append((t_ns, stamp_ns(msg.header.stamp), msg))
             elif conn.topic == joint_states_topic:
@@ -102,12 +104,14 @@ def calibrate_bag(bag: str | Path, model: str | Path, joint_states_topic: str, i
         image_conns = [c for c in reader.connections if c.topic == image_topic and c.msgtype == IMAGE_MSGTYPE]
         n_images = sum(c.msgcount for c in image_conns) if limit is None else min(limit, sum(c.msgcount for c in image_conns))
         frame_id, done = "", 0
-        for conn, t_ns, raw in tqdm(read_messages(reader, image_conns, bag, problems), total=n_images,
+        for conn, t_ns, msg in tqdm(read_messages(reader, image_conns, bag, problems), total=n_images,
                                     desc="calibrate", unit="image", disable=not progress):
             if done == n_images:
                 break
             done += 1
-            msg = reader.deserialize(raw, conn.msgtype)
+            if msg is None:
+                skipped["undeserializable image"] += 1
+                continue
             stamp = stamp_ns(msg.header.stamp)
             frame_id = frame_id or msg.header.frame_id
             nearest = joints.nearest(stamp, tolerance_ns)

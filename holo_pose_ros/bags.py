@@ -308,12 +308,13 @@ def open_bag(bag: Path, typestore):
 
 
 def read_messages(reader, connections, bag: Path, problems: list[str]):
-    """(connection, log time ns, raw) of `connections`, stopping with a warning (recorded in `problems`) when the
-    storage ends early or is corrupt: what was read before still counts."""
+    """(connection, log time ns, message) of `connections`, deserialized; the message is None (logged) when its
+    bytes do not deserialize. Stops with a warning (recorded in `problems`) when the storage ends early or is
+    corrupt: what was read before still counts."""
     iterator = reader.messages(connections=connections)
     while True:
         try:
-            item = next(iterator)
+            conn, t_ns, raw = next(iterator)
         except StopIteration:
             return
         except Exception as e:  # noqa: BLE001 - rosbags' storage readers raise many kinds on damaged files
@@ -321,7 +322,13 @@ def read_messages(reader, connections, bag: Path, problems: list[str]):
             logger.warning(problem)
             problems.append(problem)
             return
-        yield item
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
+            logger.warning("a %s message on %s at %d ns does not deserialize, skipped: %s", conn.msgtype, conn.topic,
+                           t_ns, e)
+            msg = None
+        yield conn, t_ns, msg
 
 
 def pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str:
@@ -390,11 +397,8 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         truth_msgs: dict[int, dict[str, object]] = {}
         small = [c for c in reader.connections if (c.topic == camera_info_topic and c.msgtype == CAMERA_INFO_MSGTYPE)
                  or (c.topic in gt_topics and c.msgtype == MSGTYPES[gt_topics[c.topic]])]
-        for conn, t_ns, raw in read_messages(reader, small, bag, problems):
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
-                logger.warning("a %s message on %s does not deserialize, skipped: %s", conn.msgtype, conn.topic, e)
+        for conn, t_ns, msg in read_messages(reader, small, bag, problems):
+            if msg is None:
                 continue
             if conn.topic == camera_info_topic:
                 infos.append((t_ns, stamp_ns(msg.header.stamp), msg))
@@ -416,15 +420,12 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         results, n_done, found, skipped, no_truth = [], 0, 0, 0, 0
         try:
             messages = read_messages(reader, image_conns, bag, problems)
-            for conn, t_ns, raw in tqdm(messages, total=n_images, desc="bag-eval", unit="image", disable=not progress):
+            for conn, t_ns, msg in tqdm(messages, total=n_images, desc="bag-eval", unit="image", disable=not progress):
                 if n_done == n_images:
                     break
                 index, n_done = n_done, n_done + 1
-                try:
-                    msg = reader.deserialize(raw, conn.msgtype)
-                except Exception as e:  # noqa: BLE001 - a corrupt message is skipped, never the run
+                if msg is None:  # logged by read_messages
                     skipped += 1
-                    logger.warning("image %d does not deserialize, skipped: %s", index, e)
                     continue
                 stamp = stamp_ns(msg.header.stamp)
                 estimate, seconds = None, 0.0

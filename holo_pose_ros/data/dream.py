@@ -267,10 +267,10 @@ def decode_image(path: Path) -> np.ndarray:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as e:
         raise DreamFormatError(f"cannot read image {path}: {e}") from e
-    raw = data.tobytes()
-    if raw[:2] == b"\xff\xd8" and b"\xff\xd9" not in raw[-1024:]:  # some writers append bytes after the marker
+    head, tail = data[:8].tobytes(), data[-1024:].tobytes()
+    if head[:2] == b"\xff\xd8" and b"\xff\xd9" not in tail:  # some writers append bytes after the marker
         raise DreamFormatError(f"image {path} is truncated (the JPEG has no end-of-image marker)")
-    if raw[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in raw[-16:]:
+    if head == b"\x89PNG\r\n\x1a\n" and b"IEND" not in tail[-16:]:
         raise DreamFormatError(f"image {path} is truncated (the PNG has no IEND chunk)")
     image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if image is None:
