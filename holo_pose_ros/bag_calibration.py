@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, GROUND_TRUTH_NS, IMAGE_MSGTYPE, camera_info_for, jazzy_typestore,
-                                open_bag, pick_topic, read_messages)
+from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, GROUND_TRUTH_NS, IMAGE_MSGTYPE, image_and_intrinsics,
+                                jazzy_typestore, open_bag, pick_topic, read_messages)
 from holo_pose_ros.calibration import Calibration, average_poses, pose_error
 from holo_pose_ros.geometry.alignment import matrix_to_quaternion_xyzw
 from holo_pose_ros.monitoring.stamps import NS, StampBuffer
-from msg_adapters import camera_info_to_K, check_image_size, image_to_rgb, stamp_ns
+from msg_adapters import stamp_ns
 from msg_adapters.estimate import pose_to_matrix
 from msg_adapters.joint_states import joint_positions_by_name
 
@@ -124,13 +124,8 @@ def calibrate_bag(bag: str | Path, model: str | Path, joint_states_topic: str, i
                 logger.warning("image at %d ns skipped: joint state lacks %s", stamp,
                                ", ".join(selection.missing + selection.nonfinite))
                 continue
-            info = camera_info_for(infos, stamp, t_ns)
             try:
-                if info is None:
-                    raise ValueError(f"no CameraInfo on {camera_info_topic} at or before this image")
-                image = image_to_rgb(msg)
-                check_image_size(info, image.shape[1], image.shape[0])
-                K = camera_info_to_K(info)
+                image, K = image_and_intrinsics(msg, infos, t_ns, camera_info_topic)
             except ValueError as e:
                 skipped["unreadable image or CameraInfo"] += 1
                 logger.warning("image at %d ns skipped: %s", stamp, e)

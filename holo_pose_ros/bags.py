@@ -350,6 +350,18 @@ def pick_topic(connections, msgtype: str, wanted: str | None, what: str) -> str:
     return candidates[0]
 
 
+def image_and_intrinsics(msg, infos: list[tuple[int, int, object]], t_ns: int, camera_info_topic: str,
+                         use_rectified_p: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB image, K) of an Image message with its CameraInfo (camera_info_for); ValueError (the message adapters'
+    errors are ValueErrors) when there is none yet, or the image or the intrinsics are unusable."""
+    info = camera_info_for(infos, stamp_ns(msg.header.stamp), t_ns)
+    if info is None:
+        raise ValueError(f"no CameraInfo on {camera_info_topic} at or before this image")
+    image = image_to_rgb(msg)
+    check_image_size(info, image.shape[1], image.shape[0])
+    return image, camera_info_to_K(info, use_rectified_p)
+
+
 def camera_info_for(infos: list[tuple[int, int, object]], image_stamp: int, image_time: int):
     """The CameraInfo with the image's stamp, else the latest one logged at or before the image, else None."""
     exact = [m for t, s, m in infos if s == image_stamp]
@@ -430,12 +442,7 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
                 stamp = stamp_ns(msg.header.stamp)
                 estimate, seconds = None, 0.0
                 try:
-                    info = camera_info_for(infos, stamp, t_ns)
-                    if info is None:
-                        raise ValueError(f"no CameraInfo on {camera_info_topic} at or before this image")
-                    image = image_to_rgb(msg)
-                    check_image_size(info, image.shape[1], image.shape[0])
-                    K = camera_info_to_K(info, use_rectified_p)
+                    image, K = image_and_intrinsics(msg, infos, t_ns, camera_info_topic, use_rectified_p)
                     start = time.perf_counter()
                     estimate = estimator.estimate(image, K)
                     seconds = time.perf_counter() - start

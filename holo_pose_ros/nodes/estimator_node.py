@@ -32,7 +32,7 @@ from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.visualization import draw_skeleton
 from msg_adapters import (CameraInfoError, ImageConversionError, camera_info_to_K, check_image_size, image_to_rgb,
                           rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers, to_pose_stamped,
-                          to_pose_with_covariance, to_transform_stamped)
+                          stamp_ns, to_pose_with_covariance, to_transform_stamped)
 from msg_adapters.joint_states import joint_positions_by_name
 
 try:
@@ -349,7 +349,7 @@ class EstimatorNode(Node):
 
     def _known_joints(self, msg: Image):
         """Calibration mode: the trusted joints (J,) for this image, or None (counted and logged) to skip it."""
-        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        stamp = stamp_ns(msg.header.stamp)
         with self._lock:
             nearest = self._joint_states.nearest(stamp, self._tolerance_ns)
         if nearest is None:
