@@ -114,3 +114,16 @@ def test_cumulative_views_continue_the_campaign_and_survive_a_resume(tmp_path):
     assert [int(float(r["views"])) for r in rows] == [before + int(r["step"]) * 4 for r in rows]
     hours = [float(r["train_hours"]) for r in rows]
     assert hours == sorted(hours) and hours[-1] < 1.0
+
+
+def test_a_warm_started_run_draws_views_its_donor_never_saw(tmp_path):
+    """Views are indexed by the campaign's view count, so a new run from a shipped card does not replay the views
+    that trained it (every run of a recipe has the same seed)."""
+    first = Trainer(tiny_config(tmp_path / "first"), device="cpu", progress=False).run()
+    seen = yaml.safe_load(open(first))["training"]["cumulative_views"]
+    second = Trainer({**tiny_config(tmp_path / "second"), "init_from": str(first)}, device="cpu", progress=False)
+    loader = second._loader(8)
+    assert list(loader.dataset.indices) == list(range(seen, seen + 8))
+    fresh = Trainer(tiny_config(tmp_path / "fresh"), device="cpu", progress=False)._loader(4)
+    assert list(fresh.dataset.indices) == [0, 1, 2, 3]
+    assert not torch.equal(next(iter(fresh))["image"], next(iter(loader))["image"])

@@ -105,8 +105,10 @@ class Trainer:
         self.hours_this_run, self._clock = 0.0, time.perf_counter()
 
     # -- data ----------------------------------------------------------------------------------------------
-    def _loader(self, start: int, count: int) -> torch.utils.data.DataLoader:
-        """Views [start, start + count) of this rank's stream (deterministic, so a resumed run sees new data)."""
+    def _loader(self, count: int) -> torch.utils.data.DataLoader:
+        """The next `count` views of this rank's stream (deterministic), from index = the campaign's view count so
+        far: a resumed run, and a new run warm-started from a shipped card, both see views never seen before."""
+        start = self._views()
         seed = self.cfg.get("seed", 0) * 1000 + self.rank
         dataset = torch.utils.data.Subset(RenderedViews(self.cfg["robot"], self.sample_cfg, self.generator_cfg, seed,
                                                         start + count), range(start, start + count))
@@ -216,7 +218,7 @@ class Trainer:
                 optimizer.load_state_dict(state["optimizer"])
             stage_step = self.step - done_before
             sums, count, tick = {}, 0, time.perf_counter()
-            loader = self._loader(self.step * self.cfg["batch_size"], (stage["steps"] - stage_step) * self.cfg["batch_size"])
+            loader = self._loader((stage["steps"] - stage_step) * self.cfg["batch_size"])
             for batch in loader:
                 batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
                 for group in optimizer.param_groups:
