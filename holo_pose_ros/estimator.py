@@ -64,16 +64,19 @@ class Estimator:
     lost. `fit` (default) fits the kinematic model to the detected 2D keypoints from every start (paper heads,
     `lifter` hypotheses, previous frame); `fit=False` gives the paper's feed-forward estimate; `fit=None` (auto)
     fits when the network has fit heatmaps and a lifter is loaded (`from_model`: the model card's validated
-    choice, `estimator.fit`, when it has one). Keypoints below
-    `min_keypoint_confidence` do not count in the fit; the `lifter_starts` lifter hypotheses that best explain the
-    keypoints start it. The estimate's confidence is the presence probability times
+    choice, `estimator.fit`, when it has one). A keypoint weighs its heatmap confidence to the power
+    `keypoint_weight_power` in the fit (sharp peaks are far more often right); a weight below
+    `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints start it. With
+    `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth (config/fitting.yaml):
+    biased 2D detections otherwise make the fit place the robot too far. The estimate's confidence is the presence probability times
     the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
     so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
-                 min_keypoint_confidence: float = 0.1, lifter_starts: int = 2):
+                 min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
+                 depth_prior: bool = True):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -87,6 +90,7 @@ class Estimator:
         self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
         self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
+        self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
         self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
         self._previous_hint: np.ndarray | None = None  # (M, 2) pixels: the previous fit's keypoints
@@ -232,7 +236,7 @@ class Estimator:
         t0 = time.perf_counter()
         ff = self._kinematics(detection.out, known_joints, timings)
         poses = {"feed-forward": (ff["joints"], ff["T_cam_base"], None)}
-        weights = np.where(detection.confidence >= self.min_keypoint_confidence, detection.confidence, 0.0)
+        weights = self.fit_weights(detection.confidence)
         hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
             "lifter" in methods or "fitted" in methods) else None
         if hypotheses is not None:  # best first, by reprojection cost
@@ -246,7 +250,8 @@ class Estimator:
             if tracked and previous.joints is not None:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
-            fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints)
+            fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
+                                     self._mean_fit_depth(ff) if self.depth_prior else None)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
@@ -298,6 +303,18 @@ class Estimator:
             root_depth_m=float(root), box=detection.box, tracked=tracked, timings_ms=dict(timings),
             detected_2d=detection.uv, detected_confidence=detection.confidence,
             fit_rms_px=None if fit is None else fit.rms_px, **names)
+
+    def fit_weights(self, confidence: np.ndarray) -> np.ndarray:
+        """(M,) fit weights of heatmap confidences (M,): confidence ** keypoint_weight_power, 0 below
+        min_keypoint_confidence."""
+        weights = np.asarray(confidence, np.float64) ** self.keypoint_weight_power
+        return np.where(weights >= self.min_keypoint_confidence, weights, 0.0)
+
+    def _mean_fit_depth(self, ff: dict) -> float:
+        """Mean camera depth (metres) of the fit keypoints in the feed-forward estimate: the fit's depth prior."""
+        points = self.fitter.tree.points(np.asarray(ff["joints"], np.float64)[None])[0]
+        T = np.asarray(ff["T_cam_base"], np.float64)
+        return float((points @ T[2, :3] + T[2, 3]).mean())
 
     def _projected_fit_keypoints(self, estimate: Estimate, K: np.ndarray) -> np.ndarray:
         """(M, 2) image pixels of every fit keypoint of an estimate: the next frame's crop when tracking."""

@@ -42,7 +42,7 @@ def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames)
         r = estimator.estimate_methods(image, frame.K, None, METHODS)
         fitted, ff = r["fitted"], r["feed-forward"]
         assert fitted.found and ff.found and fitted.fit_rms_px is not None and np.isfinite(fitted.fit_rms_px)
-        w = np.where(fitted.detected_confidence >= estimator.min_keypoint_confidence, fitted.detected_confidence, 0.0)
+        w = estimator.fit_weights(fitted.detected_confidence)
         lower, upper = estimator.robot.lower.cpu().numpy(), estimator.robot.upper.cpu().numpy()
         # the paper's heads may leave the joint limits; the fit starts from their projection onto them
         ff_q = np.clip(ff.joints, lower, upper)
@@ -80,6 +80,23 @@ def test_tracking_starts_the_fit_from_the_previous_frame(frames):
     assert "localize" not in second.timings_ms
     # the previous frame's answer is a start: on the same image, the tracked fit explains it at least as well
     assert second.fit_rms_px <= first.fit_rms_px * 1.5
+
+
+def test_the_depth_prior_pulls_the_fit_towards_the_paper_heads_depth(frames):
+    """With `depth_prior` the fitted robot's mean fit-keypoint depth lies nearer the feed-forward estimate's."""
+    def mean_depth(est, e):
+        P = est.fitter.tree.points(np.asarray(e.joints, float)[None])[0]
+        return float((P @ e.T_cam_base[2, :3] + e.T_cam_base[2, 3]).mean())
+
+    gaps = {}
+    for prior in (False, True):
+        est = Estimator.from_model("panda", min_confidence=0.0, fit=True, depth_prior=prior)
+        gaps[prior] = []
+        for image, frame in frames:
+            r = est.estimate_methods(image, frame.K, None, ("feed-forward", "fitted"))
+            gaps[prior].append(abs(mean_depth(est, r["fitted"]) - mean_depth(est, r["feed-forward"])))
+    assert np.mean(gaps[True]) < np.mean(gaps[False])
+    assert max(gaps[True]) < 0.2
 
 
 def test_unknown_methods_are_refused(estimator, frames):

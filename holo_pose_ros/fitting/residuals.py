@@ -84,6 +84,23 @@ def reprojection_residuals_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | 
     return r, jac
 
 
+def mean_depth_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.ndarray, t: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean camera depth z (S,) of the points P_base (S, M, 3) through (R, t), metres, and its Jacobian (S, J + 6)
+    with respect to (dq, dphi, dt), as for the residuals; dP_dq None for a pose-only fit (J = 0). Depth is
+    linear in the points, so this is the depth of their centroid."""
+    centroid = P_base.mean(axis=1)                                            # (S, 3)
+    rz = R[:, 2, :]                                                           # (S, 3): d z / d P_base
+    z = np.einsum("si,si->s", rz, centroid) + t[:, 2]
+    n = 0 if dP_dq is None else dP_dq.shape[-1]
+    jac = np.zeros((len(R), n + 6))
+    if dP_dq is not None:
+        jac[:, :n] = np.einsum("si,sij->sj", rz, dP_dq.mean(axis=1))
+    jac[:, n:n + 3] = np.cross(centroid, rz)                                  # dX/dphi = -R [P]x, as above
+    jac[:, n + 5] = 1.0
+    return z, jac
+
+
 def robust_weights(sq_norm: np.ndarray, loss: str, scale_px: float) -> tuple[np.ndarray, np.ndarray]:
     """rho(s) (cost, px^2) and rho'(s) (IRLS weight, 0..1) of squared residual norms s (px^2), elementwise.
 

@@ -3,8 +3,10 @@
 or networks: points, weights, K and starts in, a FitResult out. Defaults in config/fitting.yaml.
 
 Objective per start: F = sum_i w_i rho(|r_i|^2) + W * prior_weight * sum_j ((q_j - q0_j) / sigma_j)^2, with r_i the
-reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss. Reported costs
-are the data term per unit weight (px^2), without the prior. Pose increments: see fitting/residuals.py.
+reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss; with a depth prior
+z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the mean camera depth of all fit points
+(2D points fix the depth only through the robot's apparent size, which biased 2D detections get wrong). Reported
+costs are the data term per unit weight (px^2), without the priors. Pose increments: see fitting/residuals.py.
 
 Coarse to fine over the tree: the first iterations see only the points at most d q-driven joints from the base
 (d = 0, step, 2 step, ...; one iteration each), then all points. Fitting the base and the proximal joints before
@@ -22,6 +24,7 @@ import numpy as np
 from holo_pose_ros.fitting.kinematic_tree import KinematicTree
 from holo_pose_ros.fitting.residuals import (
     ROBUST_LOSSES,
+    mean_depth_and_jacobian,
     reprojection_residuals,
     reprojection_residuals_and_jacobian,
     robust_weights,
@@ -91,7 +94,8 @@ def _project_rotation(R: np.ndarray) -> np.ndarray:
 @dataclass
 class _State:
     """Every start's parameters (q (S, J), R (S, 3, 3), t (S, 3)) and per-point terms there: residuals r (S, M, 2)
-    px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M)."""
+    px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M); the fit
+    points' mean camera depth z (S,) metres and its Jacobian jz (S, P)."""
 
     q: np.ndarray
     R: np.ndarray
@@ -101,6 +105,8 @@ class _State:
     sq: np.ndarray
     rho: np.ndarray
     drho: np.ndarray
+    z: np.ndarray
+    jz: np.ndarray
 
     def where(self, take: np.ndarray, other: "_State") -> "_State":
         """Per start: `other`'s values where take (S,) is True, else this state's."""
@@ -184,9 +190,10 @@ class Fitter:
 
     # -- fit ------------------------------------------------------------------------------------------------
     def fit(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q0: np.ndarray, T0: np.ndarray,
-            known_joints: np.ndarray | None = None) -> FitResult:
+            known_joints: np.ndarray | None = None, depth_prior_m: float | None = None) -> FitResult:
         """Fit to fit keypoints uv (M, 2) px with weights (M,) >= 0 seen through K (3, 3), from starts q0 (S, J)
-        and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted."""
+        and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
+        depth_prior_m, the fit points' mean camera depth is pulled towards it (metres; e.g. a depth network's)."""
         cfg = self.config
         uv, w = self._observations(uv, weights)
         K = np.asarray(K, float)
@@ -210,22 +217,22 @@ class Fitter:
 
         def linearize(q: np.ndarray, R: np.ndarray, t: np.ndarray) -> _State:
             """Residuals, Jacobian and robust terms at (q, R, t)."""
-            if pose_only:
-                r, jac = reprojection_residuals_and_jacobian(P_known, None, R, t, K, uv, min_depth)
-            else:
-                P, dP = self.tree.points_and_jacobian(q)
-                r, jac = reprojection_residuals_and_jacobian(P, dP, R, t, K, uv, min_depth)
+            P, dP = (P_known, None) if pose_only else self.tree.points_and_jacobian(q)
+            r, jac = reprojection_residuals_and_jacobian(P, dP, R, t, K, uv, min_depth)
             sq = np.sum(r * r, axis=-1)
             rho, drho = robust_weights(sq, loss, scale)
-            return _State(q, R, t, r, jac, sq, rho, drho)
+            return _State(q, R, t, r, jac, sq, rho, drho, *mean_depth_and_jacobian(P, dP, R, t))
 
         q_start = q.copy()
         prior = self._prior_precision * W                                      # (J,) per unit of (q - q0)^2
         nq = 0 if pose_only else J
         diag = np.arange(nq)
 
-        def prior_cost(q: np.ndarray) -> np.ndarray:
-            return 0.0 if pose_only else ((q - q_start) ** 2) @ prior
+        depth_precision = 0.0 if depth_prior_m is None else W * cfg["depth_prior_weight"] / cfg["depth_prior_sigma_m"] ** 2
+
+        def prior_cost(state: _State) -> np.ndarray:
+            joints = 0.0 if pose_only else ((state.q - q_start) ** 2) @ prior
+            return joints + (0.0 if depth_prior_m is None else depth_precision * (state.z - depth_prior_m) ** 2)
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
         state = linearize(q, R, t)
@@ -237,7 +244,10 @@ class Fitter:
             final = iterations > len(stages)
             wk = w if final else stages[iterations - 1]
             H, g = normal_equations(state.r, state.jac, wk * state.drho)
-            F = state.rho @ wk + prior_cost(state.q)
+            F = state.rho @ wk + prior_cost(state)
+            if depth_prior_m is not None:
+                H += depth_precision * state.jz[:, :, None] * state.jz[:, None, :]
+                g += depth_precision * state.jz * (state.z - depth_prior_m)[:, None]
             fixed = None
             if not pose_only:
                 H[:, diag, diag] += prior
@@ -250,7 +260,7 @@ class Fitter:
             dx = damped_step(H, g, damping, fixed)
             q_c = state.q if pose_only else np.clip(state.q + dx[:, :J], self.lower, self.upper)
             cand = linearize(q_c, state.R @ so3_exp(dx[:, nq:nq + 3]), state.t + dx[:, nq + 3:])
-            F_c = cand.rho @ wk + prior_cost(q_c)
+            F_c = cand.rho @ wk + prior_cost(cand)
             accept = F_c < F                                                   # False for NaN
             if final:
                 converged |= accept & (((F - F_c) < cfg["relative_tolerance"] * F)
