@@ -127,3 +127,24 @@ def test_a_warm_started_run_draws_views_its_donor_never_saw(tmp_path):
     fresh = Trainer(tiny_config(tmp_path / "fresh"), device="cpu", progress=False)._loader(4)
     assert list(fresh.dataset.indices) == [0, 1, 2, 3]
     assert not torch.equal(next(iter(fresh))["image"], next(iter(loader))["image"])
+
+
+def test_a_cpu_run_with_frozen_blocks_runs_them_in_onnx_runtime(tmp_path):
+    """`freeze_blocks` on the CPU: the frozen stem and blocks run in ONNX Runtime (exported once per run), the
+    run trains, and the frozen weights stay exactly as loaded; `frozen_backend: torch` keeps them in PyTorch."""
+    cfg = {**tiny_config(tmp_path / "ort"), "freeze_blocks": 3}
+    trainer = Trainer(cfg, device="cpu", progress=False)
+    before = {k: v.clone() for k, v in trainer.net.backbone.net._blocks[:3].state_dict().items()}
+    card = trainer.run()
+    assert (tmp_path / "ort" / "frozen_prefix_rank0.onnx").is_file() and card.is_file()
+    assert trainer.net.backbone.frozen_prefix is not None
+    after = trainer.net.backbone.net._blocks[:3].state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    rows = list(csv.DictReader(open(tmp_path / "ort" / "log.csv")))
+    assert rows and all(float(r["loss_loss"]) == float(r["loss_loss"]) for r in rows)  # finite, not NaN
+    torch_run = Trainer({**tiny_config(tmp_path / "torch"), "freeze_blocks": 3, "frozen_backend": "torch"},
+                        device="cpu", progress=False)
+    torch_run._attach_frozen_prefix()
+    assert torch_run.net.backbone.frozen_prefix is None
+    with pytest.raises(ValueError, match="frozen_backend"):
+        Trainer({**tiny_config(tmp_path / "bad"), "frozen_backend": "tvm"}, device="cpu", progress=False)._attach_frozen_prefix()

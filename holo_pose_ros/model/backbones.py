@@ -42,17 +42,32 @@ class EfficientNetLite(nn.Module):
             self._stride_ends[stride] = (i, block._block_args.output_filters)
         self.info = BackboneInfo(self.net._conv_head.out_channels, (0.5, 0.5, 0.5), (0.5, 0.5, 0.5),
                                  tuple(self._stride_ends[k][1] for k in SKIP_STRIDES))
+        # in training mode only: computes the stem and the first `frozen_prefix.blocks` blocks instead of them
+        # (train/frozen_prefix.py, ONNX Runtime on the CPU); not a submodule, so never in the state dict
+        self.frozen_prefix = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.training and self.frozen_prefix is not None:
+            return self.pyramid(x)[0]
         return self.net.extract_features(x)
+
+    def skip_ends(self) -> dict[int, int]:
+        """{block index: stride} of the last block at each skip stride (16, 8, 4)."""
+        return {self._stride_ends[k][0]: k for k in SKIP_STRIDES}
 
     def pyramid(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """The stride-32 features and the maps at strides 16, 8, 4 (the same computation as `forward`)."""
         net = self.net
-        x = net._swish(net._bn0(net._conv_stem(x)))
-        ends, skips = {self._stride_ends[k][0]: k for k in SKIP_STRIDES}, {}
+        ends, skips, first = self.skip_ends(), {}, 0
+        if self.training and self.frozen_prefix is not None:
+            maps = self.frozen_prefix(x)                     # {block index: output}, the stride ends among them
+            first = self.frozen_prefix.blocks
+            x = maps[first - 1]
+            skips.update({ends[i]: m for i, m in maps.items() if i in ends})
+        else:
+            x = net._swish(net._bn0(net._conv_stem(x)))
         rate = net._global_params.drop_connect_rate
-        for i, block in enumerate(net._blocks):
+        for i, block in enumerate(net._blocks[first:], first):
             x = block(x, drop_connect_rate=rate * i / len(net._blocks) if rate else rate)
             if i in ends:
                 skips[ends[i]] = x

@@ -165,6 +165,22 @@ class Trainer:
         self.hours_before = state.get("hours_before", self.hours_before)
         return state
 
+    def _attach_frozen_prefix(self) -> None:
+        """On the CPU (`frozen_backend: onnxruntime`, the default there), the frozen stem and blocks run in ONNX
+        Runtime during training steps, exported from the weights just loaded (train/frozen_prefix.py)."""
+        backend = self.cfg.get("frozen_backend", "torch" if self.cuda else "onnxruntime")
+        if backend not in ("torch", "onnxruntime"):
+            raise ValueError(f"frozen_backend must be torch or onnxruntime, got '{backend}'")
+        if not self.frozen or backend == "torch":
+            return
+        if self.cuda:
+            raise ValueError("frozen_backend: onnxruntime is for CPU training")
+        from holo_pose_ros.train.frozen_prefix import OnnxFrozenPrefix
+
+        self.net.backbone.frozen_prefix = OnnxFrozenPrefix(
+            self.net.backbone, self.cfg["freeze_blocks"], self.model_cfg.input_size,
+            self.out / f"frozen_prefix_rank{self.rank}.onnx", threads=torch.get_num_threads())
+
     def _train_hours(self) -> float:
         """Cumulative wall-clock training hours (on this machine's cores) of the campaign so far."""
         return self.hours_before + self.hours_this_run + (time.perf_counter() - self._clock) / 3600
@@ -201,6 +217,7 @@ class Trainer:
             lam = self.calibrate_depth_scale()
             if self.rank == 0:
                 print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
+        self._attach_frozen_prefix()
         self.net.train()
         for module in self.frozen:
             module.eval()
