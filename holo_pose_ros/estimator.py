@@ -251,7 +251,7 @@ class Estimator:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
             fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                     self._mean_fit_depth(ff) if self.depth_prior else None)
+                                     self.fitter.prior_depth(ff["joints"], ff["T_cam_base"]) if self.depth_prior else None)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
@@ -309,12 +309,6 @@ class Estimator:
         min_keypoint_confidence."""
         weights = np.asarray(confidence, np.float64) ** self.keypoint_weight_power
         return np.where(weights >= self.min_keypoint_confidence, weights, 0.0)
-
-    def _mean_fit_depth(self, ff: dict) -> float:
-        """Mean camera depth (metres) of the fit keypoints in the feed-forward estimate: the fit's depth prior."""
-        points = self.fitter.tree.points(np.asarray(ff["joints"], np.float64)[None])[0]
-        T = np.asarray(ff["T_cam_base"], np.float64)
-        return float((points @ T[2, :3] + T[2, 3]).mean())
 
     def _projected_fit_keypoints(self, estimate: Estimate, K: np.ndarray) -> np.ndarray:
         """(M, 2) image pixels of every fit keypoint of an estimate: the next frame's crop when tracking."""

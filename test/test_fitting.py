@@ -284,7 +284,7 @@ def test_known_joints_fits_only_the_pose(models, generator_config):
 
 def test_depth_prior_corrects_detections_shrunk_about_their_centre(models, generator_config):
     """2D points shrunk by 4 % about their centroid (the bias of today's heatmaps) put the robot too far, even with
-    the true joints; the prior at the true mean depth of the fit points (config weight and sigma) takes well over half of that error away."""
+    the true joints; the prior at the true depth (of the root keypoint: config depth_prior_on, weight and sigma) takes well over half of that error away."""
     model = model_of(models, "panda")
     fitter = Fitter(model)
     rng = np.random.default_rng(14)
@@ -293,13 +293,11 @@ def test_depth_prior_corrects_detections_shrunk_about_their_centre(models, gener
         problem = sample_problem(fitter.tree, fitter.lower, fitter.upper, generator_config, rng)
         centre = problem.uv.mean(0)
         uv = centre + 0.96 * (problem.uv - centre)
-        P = fitter.tree.points(problem.q[None])[0]
-        z_true = float((P @ problem.T_cam_base[2, :3] + problem.T_cam_base[2, 3]).mean())
+        z_true = fitter.prior_depth(problem.q, problem.T_cam_base)
         for prior in (False, True):
             result = fitter.fit(uv, np.ones(len(uv)), problem.K, problem.q[None], problem.T_cam_base[None],
                                 known_joints=problem.q, depth_prior_m=z_true if prior else None)
-            z = float((P @ result.T_cam_base[2, :3] + result.T_cam_base[2, 3]).mean())
-            errors[prior].append(abs(z - z_true))
+            errors[prior].append(abs(fitter.prior_depth(result.q, result.T_cam_base) - z_true))
     assert np.median(errors[False]) > 0.03                 # ~4 % of 1-3 m
     assert np.median(errors[True]) < 0.5 * np.median(errors[False])
 
@@ -376,6 +374,18 @@ def test_start_with_points_behind_the_camera_returns_finite_result(models, gener
     T0[:3, 3] = [0.0, 0.0, 0.1]
     result = fitter.fit(problem.uv, np.ones(len(problem.uv)), problem.K, problem.q[None], T0[None])
     assert np.isfinite(result.cost) and np.all(np.isfinite(result.T_cam_base))
+
+
+def test_prior_depth_is_the_root_keypoints_or_the_centroids(models):
+    model = model_of(models, "panda")
+    q = np.zeros(model.n_joints)
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 2.0]
+    P = Fitter(model).tree.points(q[None])[0]
+    assert Fitter(model, {"depth_prior_on": "root"}).prior_depth(q, T) == pytest.approx(P[model.root_index, 2] + 2.0)
+    assert Fitter(model, {"depth_prior_on": "centroid"}).prior_depth(q, T) == pytest.approx(P[:, 2].mean() + 2.0)
+    with pytest.raises(ValueError, match="depth_prior_on"):
+        Fitter(model, {"depth_prior_on": "tip"})
 
 
 def test_config_defaults_overrides_and_errors(tmp_path):

@@ -4,8 +4,9 @@ or networks: points, weights, K and starts in, a FitResult out. Defaults in conf
 
 Objective per start: F = sum_i w_i rho(|r_i|^2) + W * prior_weight * sum_j ((q_j - q0_j) / sigma_j)^2, with r_i the
 reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss; with a depth prior
-z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the mean camera depth of all fit points
-(2D points fix the depth only through the robot's apparent size, which biased 2D detections get wrong). Reported
+z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the camera depth of the root keypoint or the
+mean of all fit points (depth_prior_on; 2D points fix the depth only through the robot's apparent size, which
+biased 2D detections get wrong). Reported
 costs are the data term per unit weight (px^2), without the priors. Pose increments: see fitting/residuals.py.
 
 Coarse to fine over the tree: the first iterations see only the points at most d q-driven joints from the base
@@ -131,6 +132,12 @@ class Fitter:
         sigma = np.array([self.config["prior_sigma_m"] if t == "prismatic" else self.config["prior_sigma_rad"]
                           for t in robot.joint_types], float)
         self._prior_precision = float(self.config["prior_weight"]) / sigma ** 2    # (J,) px^2 per unit weight
+        on = self.config["depth_prior_on"]
+        if on not in ("root", "centroid"):
+            raise ValueError(f"depth_prior_on must be root or centroid, got '{on}'")
+        # fit points whose mean depth the depth prior holds: the root keypoint (a DREAM keypoint, so fit point
+        # root_index) or all of them
+        self.depth_points = np.array([robot.root_index]) if on == "root" else np.arange(self.tree.n_points)
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def _observations(self, uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -221,7 +228,9 @@ class Fitter:
             r, jac = reprojection_residuals_and_jacobian(P, dP, R, t, K, uv, min_depth)
             sq = np.sum(r * r, axis=-1)
             rho, drho = robust_weights(sq, loss, scale)
-            return _State(q, R, t, r, jac, sq, rho, drho, *mean_depth_and_jacobian(P, dP, R, t))
+            k = self.depth_points
+            return _State(q, R, t, r, jac, sq, rho, drho,
+                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t))
 
         q_start = q.copy()
         prior = self._prior_precision * W                                      # (J,) per unit of (q - q0)^2
@@ -279,6 +288,13 @@ class Fitter:
         best = int(np.argmin(costs))
         return FitResult(state.q[best].copy(), self._matrices(state.R, state.t)[best], float(costs[best]),
                          self._rms(state.sq[best] @ w / W, W), best, costs, iterations, n_points)
+
+    def prior_depth(self, q: np.ndarray, T_cam_base: np.ndarray) -> float:
+        """The depth (metres) that the depth prior holds, at joints q (J,) and pose T_cam_base (4, 4): the mean
+        camera depth of `depth_points` (config depth_prior_on)."""
+        P = self.tree.points(np.asarray(q, float)[None])[0, self.depth_points]
+        T = np.asarray(T_cam_base, float)
+        return float((P @ T[2, :3] + T[2, 3]).mean())
 
     @staticmethod
     def _matrices(R: np.ndarray, t: np.ndarray) -> np.ndarray:
