@@ -43,8 +43,8 @@ def run_cli(args: list[str]) -> None:
 
 
 def test_set(robot: str, look: str, spec: dict) -> Path:
-    """The held-out folder of `robot` and `look` (data/<robot>_test_<look>), generated once."""
-    folder = ROOT / "data" / f"{robot}_test_{look}"
+    """The held-out folder of `robot` and `look` (data/<robot>_test_<look>_seed<seed>), generated once."""
+    folder = ROOT / "data" / f"{robot}_test_{look}_seed{spec['seed']}"
     if not (folder / f"{spec['frames'] - 1:06d}.json").exists():
         generate(robot, spec["frames"], folder, seed=spec["seed"], config=spec["config"], progress=False)
     return folder
@@ -155,7 +155,8 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         "## Shipped models, end to end",
         "",
         "One `sensor_msgs/Image` in, every output message built: image conversion, localization, crop, network, "
-        "forward kinematics, messages (`holo-pose benchmark`). *Localize + crop* runs two network passes a frame "
+        "forward kinematics, the lifter and the kinematic fit when the model's card chose the fitted estimate "
+        "(*estimate*), messages (`holo-pose benchmark`). *Localize + crop* runs two network passes a frame "
         f"(the whole image, then the robot's box); *tracking* one (the previous frame's box; each scene held for "
         f"{TRACKING_HOLD} frames). *Node* is the same estimator as a ROS 2 node in its own process, timed from "
         f"`publish()` of the Image to the arrival of its JointState, with a {cfg['node']['rate_hz']} Hz camera "
@@ -165,9 +166,9 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         + ", measured with the row's backend; tracking rows have none (the test sets are independent scenes, "
         "not video).",
         "",
-        "| model | backend | mode | FPS | p50 ms | p95 ms | node: answered FPS | node p50 / p95 ms | GFLOPs / pass | "
-        "params (M) | AUC " + " | AUC ".join(cfg["test_sets"]) + " |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(cfg["test_sets"]),
+        "| model | backend | mode | estimate | FPS | p50 ms | p95 ms | node: answered FPS | node p50 / p95 ms | "
+        "GFLOPs / pass | params (M) | AUC " + " | AUC ".join(cfg["test_sets"]) + " |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(cfg["test_sets"]),
     ]
     for r in rows:
         b, n = r["bench"], r["bench"].get("node")
@@ -175,18 +176,20 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
                       f"{n['latency_ms_p95']:.0f}") if n else ("—", "—")
         aucs = [f"{r['auc'][look]['add_auc']:.1f}" if look in r["auc"] else "—" for look in cfg["test_sets"]]
         lines.append(f"| {r['model']} ({b['config']}, {b['input_size']} px) | {b['backend']} | "
-                     f"{'tracking' if b['tracking'] else 'localize + crop'} | {b['fps']:.1f} | "
+                     f"{'tracking' if b['tracking'] else 'localize + crop'} | "
+                     f"{'fitted' if b.get('fit') else 'feed-forward'} | {b['fps']:.1f} | "
                      f"{b['latency_ms_p50']:.0f} | {b['latency_ms_p95']:.0f} | {node_cells[0]} | {node_cells[1]} | "
                      f"{b['gflops']:.2f} | {b['params_m']:.1f} | " + " | ".join(aucs) + " |")
     lines += ["", "Per-stage medians (ms) of the same runs:", "",
-              "| model | backend | mode | image | localize | crop | network | kinematics | messages |",
-              "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+              "| model | backend | mode | image | localize | crop | network | kinematics | lifter | fit | messages |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         b = r["bench"]
         s = {k: v["p50"] for k, v in b["stages_ms"].items()}
         lines.append(f"| {r['model']} | {b['backend']} | {'tracking' if b['tracking'] else 'localize + crop'} | "
                      f"{s['image_conversion']:.1f} | {s['localize']:.1f} | {s['crop']:.1f} | {s['network']:.1f} | "
-                     f"{s['kinematics']:.1f} | {s['messages']:.1f} |")
+                     f"{s['kinematics']:.1f} | {s.get('lifter', 0.0):.1f} | {s.get('fit', 0.0):.1f} | "
+                     f"{s['messages']:.1f} |")
     if candidates:
         lines += ["", "## Choosing `lite`: network-only latency of the candidates", "",
                   "Batch 1, one network pass, median of "
