@@ -1,0 +1,71 @@
+"""Compare settings of the estimator's kinematic fit on a generated validation folder (never a test set): for each
+variant of config/fit_sweep.yaml, the fitted ADD AUC, median and mean ADD, mean joint error, the root keypoint's
+depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
+reference. The same network detections feed every variant.
+
+    python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.evaluation.metrics import add_auc
+from holo_pose_ros.fitting import Fitter
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default="panda")
+    parser.add_argument("--data", required=True, help="generated validation folder")
+    parser.add_argument("--frames", type=int, default=None, help="the first N frames (default: all)")
+    parser.add_argument("--variants", default=str(ROOT / "config" / "fit_sweep.yaml"))
+    args = parser.parse_args(argv)
+    variants = yaml.safe_load(open(args.variants))["variants"]
+    estimator = Estimator.from_model(args.model, backend="onnxruntime", fit=True)
+    reader = DreamReader(args.data, estimator.robot)
+    frames = list(reader)[:args.frames]
+    detections = [(f, img, estimator.detect(img, f.K)) for f in tqdm(frames, desc="detect")
+                  for img in [reader.load_image(f)]]
+    root = estimator.robot.root_index
+    print("| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
+          "| fit ms | feed-forward AUC |\n|---|---:|---:|---:|---:|---:|---:|")
+    for v in variants:
+        estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
+        estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {})
+        add, add_ff, joints, depth, ms = [], [], [], [], []
+        for frame, image, detection in detections:
+            estimator.detect = lambda *a, _d=detection, **k: _d  # the cached detection of this frame
+            out = estimator.estimate_methods(image, frame.K, methods=("feed-forward", "fitted"))
+            del estimator.detect
+            fitted, ff = out["fitted"], out["feed-forward"]
+            add.append(_add(fitted, frame))
+            add_ff.append(_add(ff, frame))
+            if fitted.found:
+                joints.append(np.degrees(np.abs(fitted.joints - frame.joints)).mean())
+                depth.append((fitted.keypoints_3d[root, 2] - frame.keypoints_3d[root, 2]) * 1e3)
+                ms.append(fitted.timings_ms.get("fit", np.nan))
+        add, depth = np.array(add), np.array(depth)
+        print(f"| {v['name']} | {add_auc(add):.1f} | {np.median(add) * 1e3:.0f} / {np.mean(add[np.isfinite(add)]) * 1e3:.0f} | "
+              f"{np.mean(joints):.1f} | {np.median(depth):+.0f}, {np.median(np.abs(depth)):.0f} | {np.nanmedian(ms):.1f} | "
+              f"{add_auc(np.array(add_ff)):.1f} |", flush=True)
+    return 0
+
+
+def _add(estimate, frame) -> float:
+    """ADD (metres) of an estimate against the frame's true keypoints; inf when the robot was not found."""
+    return float(np.linalg.norm(estimate.keypoints_3d - frame.keypoints_3d, axis=1).mean()) if estimate.found else np.inf
+
+
+if __name__ == "__main__":
+    sys.exit(main())
