@@ -5,7 +5,7 @@
 Each training run's `log.csv` (runs/<name>/log.csv) is copied into docs/training_logs/<name>.csv when its model
 ships, so the curve survives the run folder. One line per robot: validation median 2D error of the network's
 keypoints (pixels of the 640 x 480 frame; DREAM's and all fit keypoints) and validation ADD AUC through the
-deployed estimator, against cumulative training views and wall-clock training hours on the 2-core CPU; the
+deployed estimator (feed-forward, and fitted where the log has it), against cumulative training views and wall-clock training hours on the 2-core CPU; the
 shipped model's point is marked (its card's `training.cumulative_views`).
 """
 
@@ -59,6 +59,11 @@ def shipped_point(robot: str) -> dict | None:
             "auc": validation.get("add_auc")}
 
 
+def _cell(value) -> str:
+    """A table cell: one decimal, or a dash where the log has no value (runs before the column existed)."""
+    return "—" if value is None else f"{value:.1f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", default=str(ROOT / "docs" / "training_logs"), help="folder of <run>.csv logs")
@@ -70,7 +75,8 @@ def main() -> None:
     if not runs:
         raise SystemExit(f"no training logs with a 2D validation in {args.logs}")
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
-    table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC |", "|---|---|---|---|---|---|"]
+    table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC (feed-forward / fitted) |",
+             "|---|---|---|---|---|---|"]
     for name, rows in runs.items():
         robot = name.split("_")[0]
         views = [r["views"] / 1e3 for r in rows]
@@ -78,7 +84,10 @@ def main() -> None:
         axes[0].plot(views, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=f"{name}: fit keypoints")
         axes[0].plot(views, [r["val_kp2d_dream_median_px"] for r in rows], "--", label=f"{name}: DREAM keypoints")
         axes[1].plot(hours, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=name)
-        axes[2].plot(views, [r.get("val_add_auc") or 0.0 for r in rows], "-o", ms=3, label=name)
+        axes[2].plot(views, [r.get("val_add_auc") or 0.0 for r in rows], "--o", ms=3, label=f"{name}: feed-forward")
+        fitted = [(v, r["val_fitted_add_auc"]) for v, r in zip(views, rows) if r.get("val_fitted_add_auc") is not None]
+        if fitted:
+            axes[2].plot(*zip(*fitted), "-s", ms=3, label=f"{name}: fitted")
         point = shipped_point(robot)
         if point and point["views"]:
             axes[0].plot([point["views"] / 1e3], [point["fit"]], "k*", ms=14, label=f"shipped {robot}")
@@ -89,7 +98,7 @@ def main() -> None:
         for r, tag in ((best, "best"), (last, "last")):
             table.append(f"| {name} ({tag}) | {robot} | {int(r['views']):,} | {r.get('train_hours') or math.nan:.2f} | "
                          f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
-                         f"{(r.get('val_add_auc') or 0.0):.1f} |")
+                         f"{(r.get('val_add_auc') or 0.0):.1f} / {_cell(r.get('val_fitted_add_auc'))} |")
     axes[0].set(xlabel="training views (thousands, cumulative: the warm-start model's included)", ylabel="validation median 2D error (px, 640x480)",
                 yscale="log", title="2D keypoint error vs views")
     axes[1].set(xlabel="wall-clock training hours (2-core CPU)", ylabel="fit keypoints, median px", yscale="log",

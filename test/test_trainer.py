@@ -13,7 +13,7 @@ import yaml
 
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.model.network import load_model_config
-from holo_pose_ros.train.trainer import Trainer, lr_factor
+from holo_pose_ros.train.trainer import Trainer, _append_row, lr_factor
 
 WEIGHTS = {"joints": 1.0, "rotation": 1.0, "translation": 1.0, "depth": 1.0, "kp2d_reg": 10.0, "kp3d_reg": 10.0,
            "kp2d_fk": 10.0, "kp3d_fk": 10.0, "presence": 0.5}
@@ -42,6 +42,8 @@ def test_training_run_logs_checkpoints_keeps_and_resumes(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert [int(r["step"]) for r in rows] == [2, 4, 6] and [r["stage"] for r in rows] == ["depth", "full", "full"]
     assert all(float(r["loss_loss"]) > 0 for r in rows) and rows[-1]["val_add_auc"] != ""
+    # a network with fit heatmaps is also validated fitted, with the robot's shipped lifter
+    assert 0.0 <= float(rows[-1]["val_fitted_add_auc"]) <= 100.0 and "val_fitted_add_mean_mm" in rows[-1]
     card = yaml.safe_load(open(kept))
     assert card["robot"] == "panda" and card["training"]["steps"] in (4, 6)
     estimator = Estimator.from_model(kept, min_confidence=0.0)
@@ -148,3 +150,13 @@ def test_a_cpu_run_with_frozen_blocks_runs_them_in_onnx_runtime(tmp_path):
     assert torch_run.net.backbone.frozen_prefix is None
     with pytest.raises(ValueError, match="frozen_backend"):
         Trainer({**tiny_config(tmp_path / "bad"), "frozen_backend": "tvm"}, device="cpu", progress=False)._attach_frozen_prefix()
+
+
+def test_a_log_of_an_older_version_gains_the_new_columns_without_misaligning(tmp_path):
+    log = tmp_path / "log.csv"
+    _append_row(log, {"step": 250, "val_add_auc": 3.4})
+    _append_row(log, {"step": 500, "val_add_auc": 9.2, "val_fitted_add_auc": 20.1})
+    _append_row(log, {"step": 750, "val_add_auc": 7.1, "val_fitted_add_auc": 21.5})
+    rows = list(csv.DictReader(open(log)))
+    assert [(r["step"], r["val_add_auc"], r["val_fitted_add_auc"]) for r in rows] == [
+        ("250", "3.4", ""), ("500", "9.2", "20.1"), ("750", "7.1", "21.5")]

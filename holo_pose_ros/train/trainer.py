@@ -69,6 +69,28 @@ def _campaign_so_far(init_from: str | None) -> tuple[int, float]:
     return int(training.get("cumulative_views", training.get("samples", 0))), float(training.get("cumulative_train_hours", 0.0))
 
 
+def _append_row(path: Path, row: dict) -> None:
+    """Append a row to a CSV log; a log written by an older version, with fewer columns, is rewritten with the
+    new header first (its rows get empty cells), so a resumed run never misaligns its columns."""
+    if path.exists():
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            fields, rows = list(reader.fieldnames or []), list(reader)
+        if set(row) - set(fields):
+            fields += [k for k in row if k not in fields]
+            with open(path, "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=fields)
+                writer.writeheader()
+                writer.writerows(rows)
+    else:
+        fields = list(row)
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        if f.tell() == 0:
+            writer.writeheader()
+        writer.writerow(row)
+
+
 class Trainer:
     """Owns the model, data, optimizer and bookkeeping of one training run."""
 
@@ -195,16 +217,36 @@ class Trainer:
         its keypoint evidence (pixels of the 640 x 480 frame)."""
         from holo_pose_ros.data.dream import DreamReader
         from holo_pose_ros.estimator import Estimator
-        from holo_pose_ros.evaluation.run import evaluate_folder
+        from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods
 
         self.net.eval()
-        estimator = Estimator(self.net, self.robot, self.device)
+        lifter = self._validation_lifter()
+        estimator = Estimator(self.net, self.robot, self.device, lifter=lifter)
         reader = DreamReader(self.validation_folder(), self.cfg["robot"])
-        report, _, _ = evaluate_folder(estimator, reader, progress=False)
+        if lifter is None:
+            report, _, _ = evaluate_folder(estimator, reader, progress=False)
+        else:  # the same detections, feed-forward and fitted (what the product runs since the fit's depth prior)
+            reports = evaluate_methods(estimator, reader, progress=False, known_joints=False)
+            report = {**reports["feed-forward"], "fitted_add_auc": reports["fitted"]["add_auc"],
+                      "fitted_add_mean_mm": reports["fitted"]["add_mean_mm"]}
         self.net.train()
         for module in self.frozen:
             module.eval()
         return report
+
+    def _validation_lifter(self):
+        """The lifter that validation fits with (`validation.lifter`, a lifter card; default the robot's shipped
+        one), or None: for networks without fit heatmaps, or with `validation.lifter: none`."""
+        if not self.model_cfg.fit_heatmaps:
+            return None
+        if not hasattr(self, "_lifter"):
+            from holo_pose_ros.model.lifter import load_lifter
+            from holo_pose_ros.resources import weights_dir
+
+            path = self.cfg["validation"].get("lifter") or weights_dir() / f"{self.cfg['robot']}_lifter.yaml"
+            self._lifter = None if str(path) == "none" or not Path(path).is_file() else \
+                load_lifter(path, self.device).eval()
+        return self._lifter
 
     def run(self, resume: bool = False) -> Path | None:
         """Train every stage; returns the kept model card (rank 0)."""
@@ -280,14 +322,10 @@ class Trainer:
                **{f"loss_{k}": v / max(count, 1) for k, v in sums.items()},
                "views": self._views(), "train_hours": round(self._train_hours(), 4),
                **{f"val_{k}": report.get(k) for k in ("add_auc", "add_mean_mm", "n_not_found", "depth_error_mm",
-                                                      "kp2d_dream_median_px", "kp2d_fit_median_px", "n_missed_2d")}}
+                                                      "kp2d_dream_median_px", "kp2d_fit_median_px", "n_missed_2d",
+                                                      "fitted_add_auc", "fitted_add_mean_mm")}}
         row["val_depth_error_mm"] = (report.get("depth_error_mm") or {}).get("mean")
-        new = not log_path.exists()
-        with open(log_path, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+        _append_row(log_path, row)
         auc = report.get("add_auc")
         add_mm = report.get("add_mean_mm")
         add_mm = math.inf if add_mm is None else add_mm
@@ -305,6 +343,7 @@ class Trainer:
                 "training": {"config": self.cfg, "steps": self.step, "samples": self.step * self.cfg["batch_size"],
                              "cumulative_views": self._views(), "cumulative_train_hours": round(self._train_hours(), 3)},
                 "validation": {k: report[k] for k in ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm",
-                                                      "kp2d_dream_median_px", "kp2d_fit_median_px") if k in report},
+                                                      "kp2d_dream_median_px", "kp2d_fit_median_px", "fitted_add_auc",
+                                                      "fitted_add_mean_mm") if k in report},
             })
         return None
