@@ -71,7 +71,7 @@ def main() -> None:
     parser.add_argument("--readme", default=str(ROOT / "README.md"))
     args = parser.parse_args()
     runs = {p.stem: read_log(p) for p in sorted(Path(args.logs).glob("*.csv"))}
-    runs = {name: rows for name, rows in runs.items() if rows}
+    runs = dict(sorted(((name, rows) for name, rows in runs.items() if rows), key=lambda run: run[1][0]["views"]))
     if not runs:
         raise SystemExit(f"no training logs with a 2D validation in {args.logs}")
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))

@@ -47,9 +47,11 @@ def main(argv: list[str] | None = None) -> int:
     lifter = load_lifter(args.lifter) if args.lifter else None
     extra = {}
     if lifter is not None:
-        lifter_card = save_lifter(lifter, weights_dir() / f"{args.name}_lifter",
-                                  {k: v for k, v in lifter.card.items() if k in ("training", "validation")},
-                                  dtype=torch.float16)
+        lifter_card = weights_dir() / f"{args.name}_lifter.yaml"
+        if Path(args.lifter).resolve() != lifter_card.resolve():  # the shipped lifter itself is not written again
+            lifter_card = save_lifter(lifter, weights_dir() / f"{args.name}_lifter",
+                                      {k: v for k, v in lifter.card.items() if k in ("training", "validation")},
+                                      dtype=torch.float16)
         extra["lifter"] = lifter_card.name
         lifter = load_lifter(lifter_card)  # score what ships (float16)
     if lifter is not None and args.validation:
