@@ -77,6 +77,7 @@ def main() -> None:
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
     table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC (feed-forward / fitted) |",
              "|---|---|---|---|---|---|"]
+    starred = set()  # robots whose shipped model is already marked (once each)
     for name, rows in runs.items():
         robot = name.split("_")[0]
         views = [r["views"] / 1e3 for r in rows]
@@ -88,7 +89,8 @@ def main() -> None:
         fitted = [(v, r["val_fitted_add_auc"]) for v, r in zip(views, rows) if r.get("val_fitted_add_auc") is not None]
         if fitted:
             axes[2].plot(*zip(*fitted), "-s", ms=3, label=f"{name}: fitted")
-        point = shipped_point(robot)
+        point = shipped_point(robot) if robot not in starred else None
+        starred.add(robot)
         if point and point["views"]:
             axes[0].plot([point["views"] / 1e3], [point["fit"]], "k*", ms=14, label=f"shipped {robot}")
             if point.get("hours"):
