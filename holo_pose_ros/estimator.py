@@ -66,10 +66,10 @@ class Estimator:
     fits when the network has fit heatmaps and a lifter is loaded (`from_model`: the model card's validated
     choice, `estimator.fit`, when it has one). A keypoint weighs its heatmap confidence to the power
     `keypoint_weight_power` in the fit (sharp peaks are far more often right); a weight below
-    `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints start it. With
-    `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth (config/fitting.yaml):
-    biased 2D detections otherwise make the fit place the robot too far. The estimate's confidence is the presence probability times
-    the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
+    `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
+    start it. With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
+    (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
+    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
     so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",

@@ -6,8 +6,7 @@ Objective per start: F = sum_i w_i rho(|r_i|^2) + W * prior_weight * sum_j ((q_j
 reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss; with a depth prior
 z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the camera depth of the root keypoint or the
 mean of all fit points (depth_prior_on; 2D points fix the depth only through the robot's apparent size, which
-biased 2D detections get wrong). Reported
-costs are the data term per unit weight (px^2), without the priors. Pose increments: see fitting/residuals.py.
+biased 2D detections get wrong). Reported costs are the data term per unit weight (px^2), without the priors. Pose increments: see fitting/residuals.py.
 
 Coarse to fine over the tree: the first iterations see only the points at most d q-driven joints from the base
 (d = 0, step, 2 step, ...; one iteration each), then all points. Fitting the base and the proximal joints before
@@ -95,8 +94,8 @@ def _project_rotation(R: np.ndarray) -> np.ndarray:
 @dataclass
 class _State:
     """Every start's parameters (q (S, J), R (S, 3, 3), t (S, 3)) and per-point terms there: residuals r (S, M, 2)
-    px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M); the fit
-    points' mean camera depth z (S,) metres and its Jacobian jz (S, P)."""
+    px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M); the mean
+    camera depth z (S,) of the depth prior's points, metres, and its Jacobian jz (S, P)."""
 
     q: np.ndarray
     R: np.ndarray
@@ -200,7 +199,8 @@ class Fitter:
             known_joints: np.ndarray | None = None, depth_prior_m: float | None = None) -> FitResult:
         """Fit to fit keypoints uv (M, 2) px with weights (M,) >= 0 seen through K (3, 3), from starts q0 (S, J)
         and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
-        depth_prior_m, the fit points' mean camera depth is pulled towards it (metres; e.g. a depth network's)."""
+        depth_prior_m, the depth of `depth_points` (config depth_prior_on: the root keypoint or all fit points) is
+        pulled towards it (metres; e.g. a depth network's)."""
         cfg = self.config
         uv, w = self._observations(uv, weights)
         K = np.asarray(K, float)
