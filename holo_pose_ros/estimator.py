@@ -215,20 +215,34 @@ class Estimator:
         """One detection, several ways of turning it into an estimate (the ablation of `holo-pose evaluate`):
         'feed-forward' (the paper's heads), 'lifter' (its best hypothesis by reprojection, no fit) and 'fitted'
         (the kinematic fit from every start). The tracked state follows the last method asked for."""
-        unknown = set(methods) - set(METHODS)
-        if unknown:
-            raise ValueError(f"unknown estimation methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
+        _check_methods(methods)
         _check_inputs(image, K)
         K = np.asarray(K, dtype=np.float64)
         timings, start = {}, time.perf_counter()
-        names = dict(joint_names=self.robot.joint_names, keypoint_names=self.robot.keypoint_names)
         previous = self._previous
         tracked = self.tracking and previous is not None and previous.found and self._previous_hint is not None
         detection = self.detect(image, K, timings, uv_hint=self._previous_hint if tracked else None)
+        if tracked and (detection is None or detection.presence < self.min_confidence):
+            self._previous = self._previous_hint = None  # lost the robot: look for it in the whole image again
+            return self.estimate_methods(image, K, known_joints, methods)
+        return self.estimate_detection(detection, K, known_joints, methods, tracked=tracked, timings=timings,
+                                       start=start)
+
+    def estimate_detection(self, detection: Detection | None, K: np.ndarray, known_joints: np.ndarray | None = None,
+                           methods: tuple[str, ...] = METHODS, tracked: bool = False,
+                           timings: dict[str, float] | None = None, start: float | None = None) -> dict[str, Estimate]:
+        """The estimates of one given detection (None: nothing detected), one per method; e.g. to compare fit
+        settings on cached detections without re-running the network. `tracked` says the crop came from the
+        previous frame (its pose is then one more start of the fit); `timings` and `start` (perf_counter seconds)
+        carry the detection's timings into the estimates. The tracked state follows the last method asked for."""
+        _check_methods(methods)
+        K = np.asarray(K, dtype=np.float64)
+        timings = {} if timings is None else timings
+        start = time.perf_counter() if start is None else start
+        names = dict(joint_names=self.robot.joint_names, keypoint_names=self.robot.keypoint_names)
+        previous = self._previous
         if detection is None or detection.presence < self.min_confidence:
             self._previous = self._previous_hint = None
-            if tracked:  # lost the robot: look for it in the whole image again
-                return self.estimate_methods(image, K, known_joints, methods)
             presence = 0.0 if detection is None else detection.presence
             timings["total"] = (time.perf_counter() - start) * 1e3
             box = None if detection is None else detection.box
@@ -247,7 +261,7 @@ class Estimator:
             q0, T0 = [ff["joints"][None]], [ff["T_cam_base"][None]]
             if hypotheses is not None:  # the `lifter_starts` best hypotheses: each start costs about 0.5 ms of fit
                 q0.append(hypotheses[0][:self.lifter_starts]); T0.append(hypotheses[1][:self.lifter_starts])
-            if tracked and previous.joints is not None:
+            if tracked and previous is not None and previous.joints is not None:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
             fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
@@ -321,6 +335,13 @@ class Estimator:
 def _apply(A: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Apply a 3x3 affine map to (N, 2) points."""
     return uv @ A[:2, :2].T + A[:2, 2]
+
+
+def _check_methods(methods: tuple[str, ...]) -> None:
+    """ValueError naming any estimation method not in METHODS."""
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        raise ValueError(f"unknown estimation methods {sorted(unknown)}; choose from {', '.join(METHODS)}")
 
 
 def _check_inputs(image: np.ndarray, K: np.ndarray) -> None:

@@ -35,8 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     estimator = Estimator.from_model(args.model, backend="onnxruntime", fit=True)
     reader = DreamReader(args.data, estimator.robot)
     frames = list(reader)[:args.frames]
-    detections = [(f, img, estimator.detect(img, f.K)) for f in tqdm(frames, desc="detect")
-                  for img in [reader.load_image(f)]]
+    detections = [(f, estimator.detect(reader.load_image(f), f.K)) for f in tqdm(frames, desc="detect")]
     root = estimator.robot.root_index
     print("| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
           "| fit ms | feed-forward AUC |\n|---|---:|---:|---:|---:|---:|---:|")
@@ -44,10 +43,8 @@ def main(argv: list[str] | None = None) -> int:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
         estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {})
         add, add_ff, joints, depth, ms = [], [], [], [], []
-        for frame, image, detection in detections:
-            estimator.detect = lambda *a, _d=detection, **k: _d  # the cached detection of this frame
-            out = estimator.estimate_methods(image, frame.K, methods=("feed-forward", "fitted"))
-            del estimator.detect
+        for frame, detection in detections:
+            out = estimator.estimate_detection(detection, frame.K, methods=("feed-forward", "fitted"))
             fitted, ff = out["fitted"], out["feed-forward"]
             add.append(_add(fitted, frame))
             add_ff.append(_add(ff, frame))

@@ -105,6 +105,21 @@ def test_unknown_methods_are_refused(estimator, frames):
         estimator.estimate_methods(image, frame.K, None, ("magic",))
 
 
+def test_a_cached_detection_gives_the_estimate_of_its_image(estimator, frames):
+    image, frame = frames[1]
+    direct = estimator.estimate_methods(image, frame.K, None, ("feed-forward", "fitted"))
+    detection = estimator.detect(image, frame.K)
+    cached = estimator.estimate_detection(detection, frame.K, None, ("feed-forward", "fitted"))
+    for method in ("feed-forward", "fitted"):
+        assert cached[method].found
+        np.testing.assert_allclose(cached[method].joints, direct[method].joints, atol=1e-6)
+        np.testing.assert_allclose(cached[method].T_cam_base, direct[method].T_cam_base, atol=1e-6)
+    nothing = estimator.estimate_detection(None, frame.K, None, ("fitted",))["fitted"]
+    assert not nothing.found and nothing.confidence == 0.0
+    with pytest.raises(ValueError, match="unknown estimation methods"):
+        estimator.estimate_detection(detection, frame.K, None, ("magic",))
+
+
 def test_evaluate_ablation_reports_every_method_on_the_same_frames(tmp_path, capsys):
     import json
 

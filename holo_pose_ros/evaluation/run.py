@@ -86,10 +86,12 @@ def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | Non
     for frame, image in tqdm(reader.images(frames), total=len(frames), desc="ablation", unit="frame",
                              disable=not progress):
         start = time.perf_counter()
-        estimates = estimator.estimate_methods(image, frame.K, None, METHODS)
+        detection = estimator.detect(image, frame.K)
+        estimates = estimator.estimate_detection(detection, frame.K, None, METHODS)
         seconds = time.perf_counter() - start
         if known_joints and frame.joints is not None:
-            estimates["fitted, known joints"] = estimator.estimate_methods(image, frame.K, frame.joints, ("fitted",))["fitted"]
+            estimates["fitted, known joints"] = estimator.estimate_detection(detection, frame.K, frame.joints,
+                                                                             ("fitted",))["fitted"]
         for method, estimate in estimates.items():
             results.setdefault(method, []).append(frame_result(frame, estimate, seconds, robot))
         gt = ground_truth_fit_keypoints(robot, frame)
