@@ -93,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
         shutil.copy(args.log, ROOT / "docs" / "training_logs" / f"{run}.csv")
     shipped = {k: card[k] for k in ("training", "validation") if k in card}
     run_config = ROOT / (args.resume_config or Path("config") / "train" / f"{Path(args.card).resolve().parent.name}.yaml")
+    out_dir = (shipped.get("training") or {}).get("config", {}).get("out")
+    if out_dir and Path(out_dir).is_absolute() and Path(out_dir).resolve().is_relative_to(ROOT.resolve()):
+        shipped["training"]["config"]["out"] = str(Path(out_dir).resolve().relative_to(ROOT.resolve()))  # no host paths
     if "training" in shipped and run_config.exists():  # the next run of the campaign warm-starts from this card
         shipped["training"]["resume_command"] = f"holo-pose train --config {run_config.relative_to(ROOT)}"
     out = save_model(net, robot.name, weights_dir() / args.name, {**extra, **shipped, "test": metrics},
