@@ -69,8 +69,9 @@ class Estimator:
     `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
     start it. With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
     (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
-    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box side))^2): below `min_confidence` it is 'not found',
-    so a fit that explains nothing (no confident keypoint, rms = inf) finds nothing."""
+    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box
+    side))^2): below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint,
+    rms = inf) finds nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,

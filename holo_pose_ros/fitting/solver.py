@@ -6,7 +6,8 @@ Objective per start: F = sum_i w_i rho(|r_i|^2) + W * prior_weight * sum_j ((q_j
 reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss; with a depth prior
 z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the camera depth of the root keypoint or the
 mean of all fit points (depth_prior_on; 2D points fix the depth only through the robot's apparent size, which
-biased 2D detections get wrong). Reported costs are the data term per unit weight (px^2), without the priors. Pose increments: see fitting/residuals.py.
+biased 2D detections get wrong). Reported costs are the data term per unit weight (px^2), without the priors.
+Pose increments: see fitting/residuals.py.
 
 Coarse to fine over the tree: the first iterations see only the points at most d q-driven joints from the base
 (d = 0, step, 2 step, ...; one iteration each), then all points. Fitting the base and the proximal joints before
