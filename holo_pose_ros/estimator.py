@@ -100,7 +100,8 @@ class Estimator:
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
-        network's ONNX export (made once, cached) with `threads` intra-op threads."""
+        network's ONNX export (made once, cached) with `threads` intra-op threads. A card that names no lifter (a
+        training run's card) fits with the robot's shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
         if backend not in BACKENDS:
@@ -109,11 +110,14 @@ class Estimator:
         validated = (card.get("estimator") or {}).get("fit")
         if kwargs.get("fit") is None and validated is not None:  # the method the card's validation chose
             kwargs["fit"] = bool(validated)
-        if "lifter" in card and "lifter" not in kwargs:
-            from holo_pose_ros.model.lifter import load_lifter
+        if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model
+            from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
 
-            kwargs["lifter"] = load_lifter(resolve_model(model).parent / card["lifter"]).eval()
+            path = resolve_model(model).parent / card["lifter"] if "lifter" in card else \
+                shipped_lifter(robot.name) if net.cfg.fit_heatmaps else None
+            if path is not None:
+                kwargs["lifter"] = load_lifter(path, device).eval()
         network = None
         if backend == "onnxruntime":
             from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
@@ -288,7 +292,7 @@ class Estimator:
         """The lifter's hypotheses (q (H, J), T_cam_base (H, 4, 4)) from the detected 2D keypoints; the 'lifter'
         timing. Known joints replace the hypotheses' joints."""
         t0 = time.perf_counter()
-        f32 = lambda a: torch.as_tensor(np.asarray(a)[None], dtype=torch.float32)  # noqa: E731
+        f32 = lambda a: torch.from_numpy(np.array(a, dtype=np.float32)[None])  # noqa: E731 (a copy: inputs may be read-only)
         with torch.inference_mode():
             q, T = self.lifter.hypotheses(f32(detection.uv), f32(detection.confidence), f32(detection.box), f32(K))
         q, T = q[0].double().cpu().numpy(), T[0].double().cpu().numpy()

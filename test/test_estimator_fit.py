@@ -28,6 +28,26 @@ def test_the_shipped_panda_model_has_heatmaps_and_a_lifter(estimator):
     assert estimator.lifter.robot.n_fit_keypoints == estimator.robot.n_fit_keypoints
 
 
+def test_a_card_that_names_no_lifter_fits_with_the_robots_shipped_lifter(tmp_path, estimator, frames):
+    """A training run's card names no lifter: evaluating it must fit as its validation did, not lose the lifter."""
+    import shutil
+
+    import yaml
+
+    from holo_pose_ros.model.cards import read_card
+
+    card_path, card = read_card("panda")
+    shutil.copy(card_path.parent / card["weights"], tmp_path / card["weights"])
+    run_card = {k: v for k, v in card.items() if k != "lifter"}
+    (tmp_path / "best.yaml").write_text(yaml.safe_dump(run_card, sort_keys=False))
+    run = Estimator.from_model(tmp_path / "best.yaml", min_confidence=0.0, fit=True)
+    assert run.lifter is not None
+    image, frame = frames[0]
+    ours, shipped = run.estimate_methods(image, frame.K), estimator.estimate_methods(image, frame.K)
+    assert ours["lifter"].found
+    np.testing.assert_allclose(ours["fitted"].T_cam_base, shipped["fitted"].T_cam_base, atol=1e-9)
+
+
 def test_the_default_method_is_the_one_the_card_validated():
     from holo_pose_ros.model.cards import read_card
 

@@ -269,6 +269,13 @@ def resolve_lifter(path: str | Path) -> Path:
     return p
 
 
+def shipped_lifter(robot_name: str) -> Path | None:
+    """The card of a robot's shipped lifter (weights/<robot>_lifter.yaml), or None when it has none: what fits a
+    network whose card names no lifter (a training run's card, its validation)."""
+    p = weights_dir() / f"{robot_name}_lifter.yaml"
+    return p if p.is_file() else None
+
+
 def save_lifter(lifter: Lifter, path: str | Path, card: dict | None = None, dtype: torch.dtype = torch.float32) -> Path:
     """Write `path`.safetensors (weights in `dtype`) and the card `path`.yaml beside it: robot, fit keypoint count
     and hash, joint names, model config, plus `card` (training, validation, ...). Returns the card's path."""

@@ -240,12 +240,10 @@ class Trainer:
         if not self.model_cfg.fit_heatmaps:
             return None
         if not hasattr(self, "_lifter"):
-            from holo_pose_ros.model.lifter import load_lifter
-            from holo_pose_ros.resources import weights_dir
+            from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
 
-            path = self.cfg["validation"].get("lifter") or weights_dir() / f"{self.cfg['robot']}_lifter.yaml"
-            self._lifter = None if str(path) == "none" or not Path(path).is_file() else \
-                load_lifter(path, self.device).eval()
+            path = self.cfg["validation"].get("lifter") or shipped_lifter(self.cfg["robot"])
+            self._lifter = None if path is None or str(path) == "none" else load_lifter(path, self.device).eval()
         return self._lifter
 
     def run(self, resume: bool = False) -> Path | None:
