@@ -74,25 +74,27 @@ def main() -> None:
     runs = dict(sorted(((name, rows) for name, rows in runs.items() if rows), key=lambda run: run[1][0]["views"]))
     if not runs:
         raise SystemExit(f"no training logs with a 2D validation in {args.logs}")
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5.2))
+    colours = plt.get_cmap("tab10" if len(runs) <= 10 else "tab20").colors  # one colour per run in every panel
     table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC (feed-forward / fitted) |",
              "|---|---|---|---|---|---|"]
     starred = set()  # robots whose shipped model is already marked (once each)
-    for name, rows in runs.items():
-        robot = name.split("_")[0]
+    for index, (name, rows) in enumerate(runs.items()):
+        robot, c = name.split("_")[0], colours[index % len(colours)]
         views = [r["views"] / 1e3 for r in rows]
         hours = [r.get("train_hours") or math.nan for r in rows]
-        axes[0].plot(views, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=f"{name}: fit keypoints")
-        axes[0].plot(views, [r["val_kp2d_dream_median_px"] for r in rows], "--", label=f"{name}: DREAM keypoints")
-        axes[1].plot(hours, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, label=name)
-        axes[2].plot(views, [r.get("val_add_auc") or 0.0 for r in rows], "--o", ms=3, label=f"{name}: feed-forward")
+        axes[0].plot(views, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, color=c)
+        axes[0].plot(views, [r["val_kp2d_dream_median_px"] for r in rows], "--", color=c)
+        axes[1].plot(hours, [r["val_kp2d_fit_median_px"] for r in rows], "-o", ms=3, color=c, label=name)
+        axes[2].plot(views, [r.get("val_add_auc") or 0.0 for r in rows], "--o", ms=3, color=c)
         fitted = [(v, r["val_fitted_add_auc"]) for v, r in zip(views, rows) if r.get("val_fitted_add_auc") is not None]
         if fitted:
-            axes[2].plot(*zip(*fitted), "-s", ms=3, label=f"{name}: fitted")
+            axes[2].plot(*zip(*fitted), "-s", ms=3, color=c)
         point = shipped_point(robot) if robot not in starred else None
         starred.add(robot)
         if point and point["views"]:
-            axes[0].plot([point["views"] / 1e3], [point["fit"]], "k*", ms=14, label=f"shipped {robot}")
+            axes[0].plot([point["views"] / 1e3], [point["fit"]], "k*", ms=14, label="shipped model" if len(starred) == 1
+                         else None)
             if point.get("hours"):
                 axes[1].plot([point["hours"]], [point["fit"]], "k*", ms=14)
         last = rows[-1]
@@ -102,17 +104,19 @@ def main() -> None:
                          f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
                          f"{(r.get('val_add_auc') or 0.0):.1f} / {_cell(r.get('val_fitted_add_auc'))} |")
     axes[0].set(xlabel="training views (thousands, cumulative: the warm-start model's included)", ylabel="validation median 2D error (px, 640x480)",
-                yscale="log", title="2D keypoint error vs views")
+                yscale="log", title="2D error vs views (solid: fit keypoints, dashed: DREAM's)")
     axes[1].set(xlabel="wall-clock training hours (2-core CPU)", ylabel="fit keypoints, median px", yscale="log",
                 title="2D keypoint error vs time")
-    axes[2].set(xlabel="training views (thousands)", ylabel="ADD AUC (%)", title="validation AUC (deployed estimator)")
+    axes[2].set(xlabel="training views (thousands)", ylabel="ADD AUC (%)",
+                title="validation AUC (solid: fitted, dashed: feed-forward)")
     for ax in axes[:2]:  # plain numbers on the log axes
         ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
         ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.0f"))
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+    handles = axes[1].get_legend_handles_labels()[0] + axes[0].get_legend_handles_labels()[0]
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.12, 1, 1))  # room for the runs' legend below the panels
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")
