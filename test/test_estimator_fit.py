@@ -152,6 +152,9 @@ def test_evaluate_ablation_reports_every_method_on_the_same_frames(tmp_path, cap
     assert list(reports) == [*METHODS, "fitted, known joints"]
     for report in reports.values():
         assert report["n_frames"] == 3 and report["kp2d_fit_median_px"] > 0
+        per_keypoint = report["kp2d_dream_median_px_per_keypoint"]   # the network's, one per DREAM keypoint
+        assert len(per_keypoint) == 7 and all(v is None or v >= 0 for v in per_keypoint)
+        assert list(report["keypoint_error_px"]) == ["panda_link0", *[f"panda_link{i}" for i in (2, 3, 4, 6, 7)], "panda_hand"]
     assert reports["fitted, known joints"]["joint_error_deg"]["mean"] == 0.0
     printed = capsys.readouterr().out
-    assert "| fitted |" in printed and "fit keypoints" in printed
+    assert "| fitted |" in printed and "fit keypoints" in printed and "2D error, network   panda_link0" in printed

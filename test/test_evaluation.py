@@ -11,7 +11,7 @@ from holo_pose_ros.evaluation.plots import plot_add_curve, plot_frames_grid
 from holo_pose_ros.evaluation.report import FrameResult, build_report, format_report, per_frame_add, write_report
 
 REQUIRED_KEYS = {"n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm",
-                 "joint_error_deg", "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps",
+                 "joint_error_deg", "rotation_error_deg", "depth_error_mm", "reproj_error_px", "keypoint_error_px", "fps",
                  "truncation", "n_found_for_means"}
 
 
@@ -121,12 +121,24 @@ def test_build_report_keys_json_and_not_found_frames(tmp_path):
     # frame "d" has no in-image keypoint: its NaN reprojection error leaves the mean
     assert report["reproj_error_px"]["mean"] == pytest.approx(math.sqrt(8.0))
     assert report["extra"]["n_frames_used"]["reproj_error"] == 2
+    assert report["keypoint_error_px"] == pytest.approx({"k0": math.sqrt(8.0), "k1": math.sqrt(8.0), "k2": math.sqrt(8.0)})
     assert report["fps"] == pytest.approx(20.0)
     assert [r["n_in_image"] for r in report["truncation"]] == [0, 1, 3]
     assert report["truncation"][1]["add_mean_mm"] is None  # the only 1-keypoint frame was not found
     write_report(report, tmp_path / "out" / "report.json")
     assert json.loads((tmp_path / "out" / "report.json").read_text()) == report
     assert "ADD AUC" in format_report(report)
+
+
+def test_keypoint_error_is_each_keypoints_median_over_the_frames_where_it_is_in_the_image():
+    gt = np.zeros((3, 3, 2))
+    pred = gt.copy()
+    pred[:, 0, 0] = [1.0, 2.0, 30.0]        # keypoint 0: 1, 2, 30 px -> median 2
+    pred[:, 1, 1] = [4.0, 100.0, 6.0]       # keypoint 1: its 100 px frame has it outside the image -> median 5
+    pred[:, 2] = 7.0                        # keypoint 2: never in the image -> NaN
+    in_image = np.array([[True, True, False], [True, False, False], [True, True, False]])
+    errors = metrics.keypoint_error_px(pred, gt, in_image)
+    assert errors[:2] == pytest.approx([2.0, 5.0]) and np.isnan(errors[2])
 
 
 def test_plots_write_png_files(tmp_path):

@@ -28,13 +28,16 @@ def keypoint_errors_px(detected: np.ndarray, gt: np.ndarray, width: int, height:
 
 
 def summarize_2d(errors: list[np.ndarray], n_dream: int, n_frames: int, n_missed: int) -> dict:
-    """Median / mean 2D error (px) of DREAM's and of all fit keypoints over per-frame (M,) error arrays."""
+    """Median / mean 2D error (px) of DREAM's and of all fit keypoints over per-frame (M,) error arrays, and the
+    median of each DREAM keypoint (None where it was never in the image)."""
     def stat(values: np.ndarray, f) -> float | None:
         values = values[np.isfinite(values)]
         return float(f(values)) if values.size else None
 
     dream = np.concatenate([e[:n_dream] for e in errors]) if errors else np.zeros(0)
     fit = np.concatenate(errors) if errors else np.zeros(0)
+    per_keypoint = np.stack([e[:n_dream] for e in errors]) if errors else np.zeros((0, n_dream))
     return {"n_frames_2d": n_frames, "n_missed_2d": n_missed,
+            "kp2d_dream_median_px_per_keypoint": [stat(column, np.median) for column in per_keypoint.T],
             "kp2d_dream_median_px": stat(dream, np.median), "kp2d_dream_mean_px": stat(dream, np.mean),
             "kp2d_fit_median_px": stat(fit, np.median), "kp2d_fit_mean_px": stat(fit, np.mean)}

@@ -88,6 +88,17 @@ def reprojection_error_px(pred_uv: np.ndarray, gt_uv: np.ndarray, in_image: np.n
     return np.divide(total, count, out=np.full(len(count), np.nan), where=count > 0)
 
 
+def keypoint_error_px(pred_uv: np.ndarray, gt_uv: np.ndarray, in_image: np.ndarray) -> np.ndarray:
+    """(N,) median pixel distance of each keypoint over the frames (F, N) where its GT lies in the image; NaN for a
+    keypoint never in the image. Says which links the 2D evidence gets wrong (distal ones, occluded ones)."""
+    dist = np.linalg.norm(np.asarray(pred_uv, float) - np.asarray(gt_uv, float), axis=-1)
+    dist = np.where(np.asarray(in_image, bool), dist, np.nan)
+    out = np.full(dist.shape[-1], np.nan)
+    seen = np.isfinite(dist).any(axis=0)
+    out[seen] = np.nanmedian(dist[:, seen], axis=0)
+    return out
+
+
 def truncation_table(add_m: np.ndarray, found: np.ndarray | None, n_in_image: np.ndarray,
                      n_keypoints: int) -> list[dict]:
     """One row per number of in-image GT keypoints present (ascending): n_frames, add_auc (percent),

@@ -86,6 +86,17 @@ def _reprojection(results: list[FrameResult]) -> np.ndarray:
                                          np.array([r.in_image for r in used], bool))
 
 
+def _keypoint_errors(results: list[FrameResult], keypoint_names: list[str]) -> dict[str, float]:
+    """Median in-image 2D error (px) of each keypoint over the found frames with a pred_uv (NaN if never seen)."""
+    used = [r for r in results if r.found and r.pred_uv is not None]
+    if not used:
+        return {name: float("nan") for name in keypoint_names}
+    errors = metrics.keypoint_error_px(np.array([r.pred_uv for r in used], float),
+                                       np.array([r.gt_uv for r in used], float),
+                                       np.array([r.in_image for r in used], bool))
+    return dict(zip(keypoint_names, errors.tolist()))
+
+
 def _json_safe(value):
     """Plain Python containers and floats, NaN and infinities as None."""
     if isinstance(value, dict):
@@ -124,6 +135,7 @@ def build_report(results: list[FrameResult], joint_names: list[str], joint_types
         "rotation_error_deg": _stats(metrics.rotation_error_deg(R_pred, R_gt) if len(R_pred) else []),
         "depth_error_mm": _stats(metrics.depth_error_mm(depth_pred, depth_gt)),
         "reproj_error_px": _stats(reproj),
+        "keypoint_error_px": _keypoint_errors(results, keypoint_names),
         "fps": len(results) / seconds if seconds > 0 else float("nan"),
         "truncation": metrics.truncation_table(add, found, n_in_image, len(keypoint_names)),
         "extra": {"n_frames_used": {"joint_error": n_joint, "rotation_error": len(R_pred),
@@ -142,6 +154,16 @@ def write_report(report: dict, path: str | Path) -> None:
 def _num(value: float | None, digits: int = 2) -> str:
     """A number for the terminal, 'n/a' for None."""
     return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def keypoint_error_lines(report: dict, estimate: bool = True) -> list[str]:
+    """Per-keypoint median 2D errors (px, in-image): of the estimate's projection (when `estimate`) and, when the
+    report has them, of the network's heatmap peaks before any fit."""
+    names = list(report.get("keypoint_error_px") or {})
+    rows = [("estimate", list(report["keypoint_error_px"].values()) if estimate and names else None),
+            ("network", report.get("kp2d_dream_median_px_per_keypoint"))]
+    return [f"2D error, {label:<9} " + "  ".join(f"{n} {_num(v, 1)}" for n, v in zip(names, values)) + " px (median)"
+            for label, values in rows if names and values]
 
 
 def format_report(report: dict) -> str:
@@ -164,6 +186,7 @@ def format_report(report: dict) -> str:
                              ("depth_error_mm", "root depth error", "mm"),
                              ("reproj_error_px", "reprojection error", "px")):
         lines.append(f"{label:<20}{_num(report[key]['mean'])} / {_num(report[key]['median'])} {unit} (mean / median)")
+    lines += keypoint_error_lines(report)
     lines.append(f"fps                 {_num(report['fps'], 1)}")
     if report.get("n_skipped"):
         first = report["skipped"][0]

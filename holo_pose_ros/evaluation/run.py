@@ -11,7 +11,7 @@ from tqdm import tqdm
 from holo_pose_ros.data.dream import DreamFormatError, DreamReader
 from holo_pose_ros.estimator import METHODS, Estimate, Estimator
 from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints, keypoint_errors_px, summarize_2d
-from holo_pose_ros.evaluation.report import FrameResult, build_report
+from holo_pose_ros.evaluation.report import FrameResult, build_report, keypoint_error_lines
 
 
 def frame_result(frame, estimate: Estimate, seconds: float, robot) -> FrameResult:
@@ -121,4 +121,5 @@ def format_ablation(reports: dict[str, dict]) -> str:
     lines.append(f"\nnetwork 2D error (median, px): DREAM keypoints {fmt(any_report['kp2d_dream_median_px'])}, "
                  f"fit keypoints {fmt(any_report['kp2d_fit_median_px'])} "
                  f"({any_report['n_missed_2d']}/{any_report['n_frames_2d']} frames without a detection)")
+    lines += keypoint_error_lines(any_report, estimate=False)
     return "\n".join(lines)
