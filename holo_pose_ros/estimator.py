@@ -68,9 +68,7 @@ class Estimator:
     `keypoint_weight_power` in the fit (sharp peaks are far more often right); a weight below
     `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
     start it. With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
-    (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far; DepthNet's depth
-    times `depth_prior_scale` (the model card's calibration on deployed validation crops, 1 = none) is the prior's
-    centre. The estimate's
+    (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
     confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box
     side))^2): below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint,
     rms = inf) finds nothing."""
@@ -79,7 +77,7 @@ class Estimator:
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
-                 depth_prior: bool = True, depth_prior_scale: float = 1.0):
+                 depth_prior: bool = True):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -94,9 +92,6 @@ class Estimator:
         self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
-        if not (np.isfinite(depth_prior_scale) and 0.5 <= depth_prior_scale <= 2.0):
-            raise ValueError(f"depth_prior_scale must be a calibration factor in [0.5, 2], got {depth_prior_scale}")
-        self.depth_prior_scale = float(depth_prior_scale)
         self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
         self._previous_hint: np.ndarray | None = None  # (M, 2) pixels: the previous fit's keypoints
@@ -112,11 +107,9 @@ class Estimator:
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, card = load_model(model, device)
-        chosen = card.get("estimator") or {}
-        if kwargs.get("fit") is None and chosen.get("fit") is not None:  # the method the card's validation chose
-            kwargs["fit"] = bool(chosen["fit"])
-        if "depth_prior_scale" in chosen:  # DepthNet's calibration on the card's validation folder
-            kwargs.setdefault("depth_prior_scale", float(chosen["depth_prior_scale"]))
+        validated = (card.get("estimator") or {}).get("fit")
+        if kwargs.get("fit") is None and validated is not None:  # the method the card's validation chose
+            kwargs["fit"] = bool(validated)
         if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model
             from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
@@ -277,8 +270,7 @@ class Estimator:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
             fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                     self.depth_prior_scale * self.fitter.prior_depth(ff["joints"], ff["T_cam_base"])
-                                     if self.depth_prior else None)
+                                     self.fitter.prior_depth(ff["joints"], ff["T_cam_base"]) if self.depth_prior else None)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3

@@ -1,8 +1,6 @@
 """Ship a trained model: score its kept checkpoint on held-out generated test folders (never seen in training or
 validation) through the deployed estimator, and write holo_pose_ros/weights/<name>.safetensors (float16) with a
-model card that records the training, the metrics and the commands that measured them. `--validation` (a generated
-folder, never a test set) chooses the default estimate (fitted or feed-forward) and calibrates the fit's depth
-prior (estimator.depth_prior_scale, evaluation/depth_calibration.py). With `--lifter`, the
+model card that records the training, the metrics and the commands that measured them. With `--lifter`, the
 lifter ships beside it (<name>_lifter.*, named in the card) and each test set also gets the ablation (feed-forward
 / lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
 
@@ -23,7 +21,6 @@ import torch
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import SETTINGS_FILE
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.evaluation.depth_calibration import depth_prior_scale
 from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
 from holo_pose_ros.model.lifter import load_lifter, save_lifter
 from holo_pose_ros.model.weights import load_model, save_model
@@ -57,17 +54,12 @@ def main(argv: list[str] | None = None) -> int:
                                       dtype=torch.float16)
         extra["lifter"] = lifter_card.name
         lifter = load_lifter(lifter_card)  # score what ships (float16)
-    scale = 1.0
     if lifter is not None and args.validation:
-        reader = DreamReader(args.validation, robot)
-        scale, n_scale = depth_prior_scale(Estimator(net, robot, lifter=lifter), reader)
-        print(f"depth prior scale {scale:.4f} (median true / DepthNet root depth, {n_scale} validation frames)")
-        ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, depth_prior_scale=scale), reader,
+        ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), DreamReader(args.validation, robot),
                                     known_joints=False)
         print(f"validation {args.validation}:\n{format_ablation(ablation)}")
         score = {m: (r["add_auc"], -(r["add_mean_mm"] or float("inf"))) for m, r in ablation.items()}
         extra["estimator"] = {"fit": bool(score["fitted"] >= score["feed-forward"]), "chosen_on": args.validation,
-                              "depth_prior_scale": scale, "depth_prior_scale_frames": n_scale,
                               "validation": {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
                                              for m, r in ablation.items()}}
         print(f"default: {'fitted' if extra['estimator']['fit'] else 'feed-forward'}")
@@ -76,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     for item in args.test:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter, fit=fit, depth_prior_scale=scale)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit)
         report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
@@ -87,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
               f"not found {report['n_not_found']}/{report['n_frames']}")
         if lifter is not None:
-            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, depth_prior_scale=scale), reader)
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), reader)
             print(format_ablation(ablation))
             metrics[look or Path(folder).name]["ablation"] = {
                 "command": f"holo-pose evaluate --model {args.name} --data {folder} --ablation",

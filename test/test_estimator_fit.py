@@ -57,58 +57,6 @@ def test_the_default_method_is_the_one_the_card_validated():
     assert set(validated["validation"]) >= {"feed-forward", "lifter", "fitted"}
 
 
-def test_the_depth_prior_scale_moves_the_fitted_depth_and_comes_from_the_card(tmp_path, estimator, frames):
-    """The calibration scales the prior's centre: a larger factor fits the robot farther, on the same detection."""
-    import shutil
-
-    import yaml
-
-    from holo_pose_ros.model.cards import read_card
-
-    image, frame = frames[1]
-    detection = estimator.detect(image, frame.K)
-    root = estimator.robot.root_index
-    depths = []
-    for scale in (0.9, 1.0, 1.1):
-        estimator.depth_prior_scale = scale
-        depths.append(estimator.estimate_detection(detection, frame.K, None, ("fitted",))["fitted"].keypoints_3d[root, 2])
-    estimator.depth_prior_scale = 1.0
-    assert depths[0] < depths[1] < depths[2]
-    for bad in (0.0, float("nan"), 3.0):
-        with pytest.raises(ValueError, match="depth_prior_scale"):
-            Estimator(estimator.net, estimator.robot, depth_prior_scale=bad)
-    card_path, card = read_card("panda")
-    for name in (card["weights"], card["lifter"]):
-        shutil.copy(card_path.parent / name, tmp_path / name)
-    lifter = yaml.safe_load((card_path.parent / card["lifter"]).read_text())["weights"]
-    shutil.copy(card_path.parent / lifter, tmp_path / lifter)
-    card["estimator"] = {**card["estimator"], "depth_prior_scale": 0.97}
-    (tmp_path / "panda.yaml").write_text(yaml.safe_dump(card, sort_keys=False))
-    assert Estimator.from_model(tmp_path / "panda.yaml").depth_prior_scale == 0.97
-    assert Estimator.from_model(tmp_path / "panda.yaml", depth_prior_scale=1.0).depth_prior_scale == 1.0
-
-
-def test_the_depth_calibration_is_the_median_depth_ratio_and_1_when_nothing_is_found(tmp_path, estimator):
-    import cv2
-
-    from holo_pose_ros.evaluation.depth_calibration import depth_prior_scale
-
-    generate("panda", 3, tmp_path / "frames", seed=4343, workers=1, progress=False)
-    reader = DreamReader(tmp_path / "frames", "panda")
-    scale, n = depth_prior_scale(estimator, reader, progress=False)
-    root = estimator.robot.root_index
-    ratios = []
-    for frame in reader:   # the same ratios, from the paper heads' estimate of each frame
-        estimator.reset()
-        ff = estimator.estimate_methods(reader.load_image(frame), frame.K, methods=("feed-forward",))["feed-forward"]
-        ratios.append(frame.keypoints_3d[root, 2] / ff.keypoints_3d[root, 2])
-    assert n == 3 and scale == pytest.approx(float(np.median(ratios)), rel=1e-9) and 0.7 < scale < 1.4
-    for frame in reader:   # black images: the paper heads guess a robot (presence ~0.6), the fit finds none
-        cv2.imwrite(str(frame.image_path), np.zeros((frame.height, frame.width, 3), np.uint8))
-    picky = Estimator.from_model("panda", fit=True)   # the default presence threshold
-    assert depth_prior_scale(picky, DreamReader(tmp_path / "frames", "panda"), progress=False) == (1.0, 0)
-
-
 def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames):
     for image, frame in frames:
         r = estimator.estimate_methods(image, frame.K, None, METHODS)
