@@ -372,6 +372,16 @@ def test_two_robots_one_camera_each_pair_under_its_namespace_then_sigint(tmp_pat
                 next_frame = time.monotonic() + 0.25
             executor.spin_once(timeout_sec=0.02)
         assert answered(), ({k: len(v) for k, v in received.items()}, launcher.output())
+
+        def estimates_caught_up() -> bool:
+            """The probe has the estimate of every discrepancy it received (two topics, two publishers: the
+            discrepancy of a frame can reach the probe before that frame's estimate does)."""
+            return all({stamp_ns(d.header.stamp) for d in received[f"{name}/discrepancy"]}
+                       <= {stamp_ns(m.header.stamp) for m in received[f"{name}/estimate"]} for name in ROBOTS)
+
+        drain = time.monotonic() + 10.0
+        while not estimates_caught_up() and time.monotonic() < drain:
+            executor.spin_once(timeout_sec=0.02)
         graph = set(probe.get_node_names_and_namespaces())
         assert {(node, f"/{name}") for name in ROBOTS
                 for node in ("holo_pose_estimator", "joint_state_monitor")} <= graph, graph
