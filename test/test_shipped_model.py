@@ -17,7 +17,7 @@ from holo_pose_ros.model.network import HolisticNet
 from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
-REGRESSION_BOUND_MM = {"panda": 100.0, "kuka": 90.0, "baxter": 350.0}  # measured 65 / 51 / 226 mm on these frames
+REGRESSION_BOUND_MM = {"panda": 100.0, "kuka": 90.0, "baxter": 350.0}  # measured 87 / 51 / 226 mm on these frames
 
 
 def test_every_robot_has_shipped_weights():
