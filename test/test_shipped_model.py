@@ -17,7 +17,9 @@ from holo_pose_ros.model.network import HolisticNet
 from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
-REGRESSION_BOUND_MM = {"panda": 100.0, "kuka": 90.0, "baxter": 350.0}  # measured 87 / 51 / 226 mm on these frames
+N_FRAMES = 48  # 6 frames were noise (a model better on 600 held-out frames read 87 -> 100 mm on them)
+REGRESSION_BOUND_MM = {"panda": 85.0, "kuka": 85.0, "baxter": 330.0}  # measured 71.8 / 70.1 / 288.8 mm on these
+# frames (the previous Panda model: 80.1)
 
 
 def test_every_robot_has_shipped_weights():
@@ -31,7 +33,7 @@ def estimator(request):
 
 def test_shipped_model_finds_its_robot_in_unseen_frames(tmp_path, estimator):
     robot = estimator.robot.name
-    generate(robot, 6, tmp_path, seed=31337, workers=1, config="photo", progress=False)
+    generate(robot, N_FRAMES, tmp_path, seed=31337, workers=1, config="photo", progress=False)
     report, _, _ = evaluate_folder(estimator, DreamReader(tmp_path, robot), progress=False)
     torch.manual_seed(0)
     untrained = Estimator(HolisticNet(estimator.net.cfg, estimator.robot), estimator.robot, min_confidence=0.0)
