@@ -35,7 +35,7 @@ from holo_pose_ros.monitoring import joint_kinds, wrap_angle
 from holo_pose_ros.nodes.monitor_launcher import ConfigError, load_monitor_config, main
 from holo_pose_ros.nodes.processes import parameter_value
 from holo_pose_ros.robots.kinematics import RobotModel
-from graph_helpers import domain_ids
+from graph_helpers import domain_ids, spin_until
 from msg_adapters import camera_info_from_K, make_header, rgb_to_image, stamp_ns
 from small_model import save_small_model
 
@@ -379,9 +379,7 @@ def test_two_robots_one_camera_each_pair_under_its_namespace_then_sigint(tmp_pat
             return all({stamp_ns(d.header.stamp) for d in received[f"{name}/discrepancy"]}
                        <= {stamp_ns(m.header.stamp) for m in received[f"{name}/estimate"]} for name in ROBOTS)
 
-        drain = time.monotonic() + 10.0
-        while not estimates_caught_up() and time.monotonic() < drain:
-            executor.spin_once(timeout_sec=0.02)
+        spin_until(executor, estimates_caught_up, timeout=10.0)
         graph = set(probe.get_node_names_and_namespaces())
         assert {(node, f"/{name}") for name in ROBOTS
                 for node in ("holo_pose_estimator", "joint_state_monitor")} <= graph, graph
