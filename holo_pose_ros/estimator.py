@@ -1,7 +1,8 @@
 """The inference API every caller uses (CLI, ROS nodes, evaluation, tests): load a model once, then
 `estimate(image, K) -> Estimate`. No ground truth of any kind reaches it: the robot is found in the raw image by
 a first pass over the whole letterboxed frame (or, when tracking, from the previous frame's keypoints), and its
-box feeds a second, accurate pass. Camera frame OpenCV; metres, radians, pixels."""
+box feeds a second, accurate pass. That box follows training's crop recipe (geometry/crop.py): DREAM's keypoints,
+grown by CROP_MARGIN. Camera frame OpenCV; metres, radians, pixels."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from holo_pose_ros.robots.kinematics import RobotModel
 
 BACKENDS = ("torch", "onnxruntime")
 METHODS = ("feed-forward", "lifter", "fitted")
-FIT_QUALITY_SCALE = 0.1  # crop-box sides: a fit whose RMS residual is this halves the estimate's confidence
-LOCALIZE_MIN_KEYPOINT_CONFIDENCE = 0.2  # fit keypoints of the full-image pass that bound the crop box
+FIT_QUALITY_SCALE = 0.16  # of the fitted robot's image extent: a fit whose RMS residual is this halves the confidence
+LOCALIZE_MIN_KEYPOINT_CONFIDENCE = 0.2  # DREAM keypoints of the full-image pass that bound the crop box
 
 
 @dataclass
@@ -69,9 +70,10 @@ class Estimator:
     `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
     start it. With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
     (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
-    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * box
-    side))^2): below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint,
-    rms = inf) finds nothing."""
+    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
+    extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
+    below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
+    nothing."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
@@ -94,7 +96,7 @@ class Estimator:
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
         self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
         self._previous: Estimate | None = None
-        self._previous_hint: np.ndarray | None = None  # (M, 2) pixels: the previous fit's keypoints
+        self._previous_hint: np.ndarray | None = None  # (N, 2) pixels: the previous estimate's DREAM keypoints
 
     @classmethod
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
@@ -157,12 +159,15 @@ class Estimator:
 
     def localize(self, image: np.ndarray, K: np.ndarray, timings: dict[str, float] | None = None) -> tuple[float, np.ndarray]:
         """The first pass over the whole letterboxed image: (presence probability, 2D keypoints in image px that
-        bound the robot: the confident fit keypoints when the network has heatmaps, else DREAM's)."""
+        bound the robot). These are DREAM's keypoints, the confident ones when the network has heatmaps, because
+        training crops its views around them: the box of all fit keypoints is larger (they reach the robot's
+        surface), which shrinks the robot in the crop and costs 2D accuracy."""
         box = full_image_box(image.shape[1], image.shape[0])
         out = self._network(image, K, box, {} if timings is None else timings)
         uv, confidence = self._keypoints_2d(out, box)
+        uv = uv[:self.robot.n_keypoints]  # the fit keypoints list DREAM's first
         if confidence is not None:
-            confident = confidence >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
+            confident = confidence[:self.robot.n_keypoints] >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
             if confident.sum() >= 2:
                 uv = uv[confident]
         return float(torch.sigmoid(out["presence_logit"][0])), uv
@@ -284,7 +289,7 @@ class Estimator:
             r.timings_ms["total"] = (time.perf_counter() - start) * 1e3
         last = results[methods[-1]]
         self._previous = last if last.found else None
-        self._previous_hint = self._projected_fit_keypoints(last, K) if last.found else None
+        self._previous_hint = last.keypoints_2d if last.found else None
         return results
 
     def _lifter_hypotheses(self, detection: Detection, K: np.ndarray, known_joints: np.ndarray | None,
@@ -305,8 +310,8 @@ class Estimator:
                             ff: dict, tracked: bool, timings: dict, names: dict) -> Estimate:
         """An Estimate from joints and base pose. Its confidence is the presence probability times the fit's
         quality (1 without a fit); below `min_confidence` the robot is 'not found'."""
-        side = float(detection.box[2])
-        quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * side)) ** 2)
+        quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * self._extent_px(
+            q, T_cam_base, K))) ** 2)
         confidence = detection.presence * quality
         if confidence < self.min_confidence:
             return Estimate(False, confidence, timings_ms=dict(timings), box=detection.box, fit_rms_px=fit.rms_px,
@@ -323,18 +328,22 @@ class Estimator:
             detected_2d=detection.uv, detected_confidence=detection.confidence,
             fit_rms_px=None if fit is None else fit.rms_px, **names)
 
+    def _extent_px(self, q: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray) -> float:
+        """The robot's apparent size, pixels: the larger side of the image bounds of its fit keypoints in front of
+        the camera (1 px at least)."""
+        with torch.inference_mode():
+            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
+            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
+            points = self.robot.fit_keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
+        uv = project(points[points[:, 2] > 1e-3], K)
+        return max(float(np.ptp(uv, axis=0).max()), 1.0) if len(uv) else 1.0
+
     def fit_weights(self, confidence: np.ndarray) -> np.ndarray:
         """(M,) fit weights of heatmap confidences (M,): confidence ** keypoint_weight_power, 0 below
         min_keypoint_confidence."""
         weights = np.asarray(confidence, np.float64) ** self.keypoint_weight_power
         return np.where(weights >= self.min_keypoint_confidence, weights, 0.0)
 
-    def _projected_fit_keypoints(self, estimate: Estimate, K: np.ndarray) -> np.ndarray:
-        """(M, 2) image pixels of every fit keypoint of an estimate: the next frame's crop when tracking."""
-        with torch.inference_mode():
-            q = torch.as_tensor(estimate.joints[None], dtype=self.robot.dtype, device=self.device)
-            T = torch.as_tensor(estimate.T_cam_base[None], dtype=self.robot.dtype, device=self.device)
-            return project(self.robot.fit_keypoints_in_camera(q, T)[0].double().cpu().numpy(), K)
 
 
 def _apply(A: np.ndarray, uv: np.ndarray) -> np.ndarray:

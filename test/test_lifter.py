@@ -96,16 +96,17 @@ def test_sampler_matches_fk_and_crop_recipe(panda, batch):
         uv = project(kp[i], K)
         front = kp[i][:, 2] > cfg["sampler"]["min_depth_m"]
         np.testing.assert_allclose(batch.uv_true[i].numpy()[front], uv[front], atol=0.05)
-        if front.all():  # the estimator's crop recipe, point for point
-            np.testing.assert_allclose(batch.box_keypoints[i].numpy(), crop_box_from_keypoints(uv, 640, 480, CROP_MARGIN),
-                                       atol=0.05)
+        if front.all():  # the estimator's crop recipe (DREAM's keypoints, listed first), point for point
+            np.testing.assert_allclose(batch.box_keypoints[i].numpy(),
+                                       crop_box_from_keypoints(uv[:panda.n_keypoints], 640, 480, CROP_MARGIN), atol=0.05)
     fx = batch.K[:, 0, 0]
     assert (fx >= 480 - 1e-3).all() and (fx <= 720 + 1e-3).all()
-    # the box holds every in-image keypoint (edge coordinates: a pixel centre u lies in [x0 - 0.5, x0 + side - 0.5])
+    # the box holds every in-image DREAM keypoint (edge coordinates: a pixel centre u lies in [x0 - 0.5, x0 + side - 0.5])
+    n = panda.n_keypoints
     box, uv, inside = batch.box_keypoints, batch.uv_true, batch.in_image
     lo, hi = box[:, None, :2] - 0.5, box[:, None, :2] + box[:, None, 2:] - 0.5
-    held = ((uv >= lo - 1e-3) & (uv <= hi + 1e-3)).all(-1)
-    assert held[inside].all()
+    held = ((uv[:, :n] >= lo - 1e-3) & (uv[:, :n] <= hi + 1e-3)).all(-1)
+    assert held[inside[:, :n]].all()
     assert inside.float().mean() > 0.7  # the camera sees most of the robot most of the time
     # detections: invisible points are never confident; kept points in [0.3, 1]; some points dropped
     c = batch.confidence

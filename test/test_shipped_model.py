@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from holo_pose_ros.data.backgrounds import random_background
-from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.data.dream import DreamReader, decode_image
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.evaluation.run import evaluate_folder
+from holo_pose_ros.geometry.crop import crop_box_from_keypoints
 from holo_pose_ros.model.network import HolisticNet
 from holo_pose_ros.model.cards import shipped_models
 
@@ -42,6 +43,22 @@ def test_shipped_model_finds_its_robot_in_unseen_frames(tmp_path, estimator):
     assert report["add_mean_mm"] < min(1000.0, 0.2 * baseline["add_mean_mm"])
     assert report["add_mean_mm"] < REGRESSION_BOUND_MM.get(robot, 1000.0)
     assert report["reproj_error_px"]["median"] < 0.75 * baseline["reproj_error_px"]["median"]
+
+
+def test_deployed_crop_follows_the_training_crop_recipe(tmp_path, estimator):
+    """The crop the estimator finds by itself frames the robot as training framed its views (DREAM's keypoints
+    grown by the crop margin): a box of every fit keypoint was a quarter larger and shrank the robot in the crop."""
+    robot = estimator.robot.name
+    generate(robot, 16, tmp_path, seed=4242, workers=1, progress=False)
+    ratios, offsets = [], []
+    for frame in DreamReader(tmp_path, robot):
+        detection = estimator.detect(decode_image(frame.image_path), frame.K)
+        assert detection is not None
+        recipe = crop_box_from_keypoints(frame.keypoints_2d, frame.width, frame.height)
+        ratios.append(detection.box[2] / recipe[2])
+        offsets.append(np.linalg.norm(detection.box[:2] - recipe[:2] + (detection.box[2] - recipe[2]) / 2) / recipe[2])
+    assert 0.9 < np.median(ratios) < 1.12, ratios
+    assert np.median(offsets) < 0.06, offsets
 
 
 def test_images_without_a_robot_are_not_found(estimator):

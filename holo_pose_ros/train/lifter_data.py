@@ -27,7 +27,7 @@ class LifterBatch:
     T_cam_base: torch.Tensor    # (B, 4, 4) true base pose in the camera frame, metres
     uv_true: torch.Tensor       # (B, M, 2) exact projections of the fit keypoints, pixels
     keypoints_cam: torch.Tensor  # (B, M, 3) fit keypoints in the camera frame, metres
-    box_keypoints: torch.Tensor  # (B, 3) the estimator's box around the true in-image keypoints, before jitter
+    box_keypoints: torch.Tensor  # (B, 3) the estimator's box around the true in-image DREAM keypoints, before jitter
     in_image: torch.Tensor      # (B, M) bool: true keypoint in front of the camera and inside the frame
 
     def to(self, device: str | torch.device) -> "LifterBatch":
@@ -214,7 +214,8 @@ class LifterSampler:
         W, H = self.width, self.height
         in_image = front & (uv_true[..., 0] >= 0) & (uv_true[..., 0] <= W) & (uv_true[..., 1] >= 0) & (uv_true[..., 1] <= H)
         bc = cfg["box"]
-        box0 = keypoint_boxes(uv_true, front, W, H, float(bc["margin"]), float(bc["min_side_px"]))
+        n = robot.n_keypoints  # the crop recipe bounds DREAM's keypoints, which the fit keypoints list first
+        box0 = keypoint_boxes(uv_true[:, :n], front[:, :n], W, H, float(bc["margin"]), float(bc["min_side_px"]))
         box = jitter_boxes(box0, float(bc["shift_sigma"]), bc["scale_range"], g)
         uv, confidence = noisy_detections(uv_true, in_image, box, cfg["noise"], g)
         return LifterBatch(uv=uv, confidence=confidence, box=box, K=K, q=q, T_cam_base=T_cam_base, uv_true=uv_true,
