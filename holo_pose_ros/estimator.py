@@ -310,16 +310,17 @@ class Estimator:
                             ff: dict, tracked: bool, timings: dict, names: dict) -> Estimate:
         """An Estimate from joints and base pose. Its confidence is the presence probability times the fit's
         quality (1 without a fit); below `min_confidence` the robot is 'not found'."""
-        quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * self._extent_px(
-            q, T_cam_base, K))) ** 2)
+        with torch.inference_mode():  # one FK call: the fit keypoints list DREAM's first
+            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
+            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
+            fit_points = self.robot.fit_keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
+        quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * _image_extent_px(
+            fit_points, K))) ** 2)
         confidence = detection.presence * quality
         if confidence < self.min_confidence:
             return Estimate(False, confidence, timings_ms=dict(timings), box=detection.box, fit_rms_px=fit.rms_px,
                             detected_2d=detection.uv, detected_confidence=detection.confidence, **names)
-        with torch.inference_mode():
-            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
-            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
-            keypoints_3d = self.robot.keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
+        keypoints_3d = fit_points[:self.robot.n_keypoints]
         root = keypoints_3d[self.robot.root_index, 2] if fit is not None else float(ff["depth"])
         return Estimate(
             True, confidence, joints=np.asarray(q, dtype=np.float64), T_cam_base=np.asarray(T_cam_base, dtype=np.float64),
@@ -328,22 +329,18 @@ class Estimator:
             detected_2d=detection.uv, detected_confidence=detection.confidence,
             fit_rms_px=None if fit is None else fit.rms_px, **names)
 
-    def _extent_px(self, q: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray) -> float:
-        """The robot's apparent size, pixels: the larger side of the image bounds of its fit keypoints in front of
-        the camera (1 px at least)."""
-        with torch.inference_mode():
-            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
-            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
-            points = self.robot.fit_keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
-        uv = project(points[points[:, 2] > 1e-3], K)
-        return max(float(np.ptp(uv, axis=0).max()), 1.0) if len(uv) else 1.0
-
     def fit_weights(self, confidence: np.ndarray) -> np.ndarray:
         """(M,) fit weights of heatmap confidences (M,): confidence ** keypoint_weight_power, 0 below
         min_keypoint_confidence."""
         weights = np.asarray(confidence, np.float64) ** self.keypoint_weight_power
         return np.where(weights >= self.min_keypoint_confidence, weights, 0.0)
 
+
+def _image_extent_px(points_cam: np.ndarray, K: np.ndarray) -> float:
+    """A robot's apparent size, pixels: the larger side of the image bounds of its points (M, 3, camera frame,
+    metres) in front of the camera; 1 px at least."""
+    uv = project(points_cam[points_cam[:, 2] > 1e-3], K)
+    return max(float(np.ptp(uv, axis=0).max()), 1.0) if len(uv) else 1.0
 
 
 def _apply(A: np.ndarray, uv: np.ndarray) -> np.ndarray:
