@@ -233,9 +233,11 @@ def _prismatic(model: RobotModel) -> np.ndarray:
 @pytest.mark.parametrize("name", ROBOTS)
 def test_fit_recovers_random_views_from_30_degree_starts(models, generator_config, name):
     """Joints uniform within the limits, a randomized camera (640x480), exact projections of every fit point in
-    front of the camera; one start 30 degrees off (each joint, the base rotation) with 10 % depth error."""
+    front of the camera; one start 30 degrees off (each joint, the base rotation) with 10 % depth error. Starts
+    this far need the coarse-to-fine stages (2 levels; off by default, where the starts are closer): without them
+    Baxter's long chains recover 84 % of the views, not 95 %."""
     model = model_of(models, name)
-    fitter = Fitter(model)
+    fitter = Fitter(model, {"grow_chain_levels": 2})
     seen = _record_joints(fitter)
     rng = np.random.default_rng(10)
     adds = []
@@ -352,7 +354,7 @@ def test_missing_points_do_not_break_the_fit(models, generator_config):
 def test_coarse_to_fine_stages_grow_from_the_base(models):
     """Stage weights: nested point sets growing from the base, each short of all points; none when off."""
     model = model_of(models, "baxter")
-    fitter = Fitter(model)
+    fitter = Fitter(model, {"grow_chain_levels": 2})
     w = np.ones(model.n_fit_keypoints)
     stages = fitter._stage_weights(w)
     assert len(stages) >= 2
@@ -361,7 +363,7 @@ def test_coarse_to_fine_stages_grow_from_the_base(models):
     for a, b in zip(stages, stages[1:]):
         assert np.all(b[a > 0] > 0)
     assert np.all(fitter.tree.point_depth[stages[0] > 0] == 0)
-    assert Fitter(model, {"grow_chain_levels": 0})._stage_weights(w) == []
+    assert Fitter(model)._stage_weights(w) == []  # off by default
 
 
 def test_start_with_points_behind_the_camera_returns_finite_result(models, generator_config):
