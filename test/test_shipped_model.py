@@ -22,7 +22,8 @@ N_FRAMES = 48  # 6 frames were noise (a model better on 600 held-out frames read
 REGRESSION_BOUND_MM = {"panda": 50.0, "kuka": 65.0, "baxter": 280.0}  # measured 46.4 / 56.0 / 251.4 mm on these
 # frames (Panda run 10, the fit's coarse-to-fine stages off; before: 57.3 / 78.8 / 245.2, with the old crop box
 # 71.8 / 70.1 / 288.8). Panda's 50 mm is the campaign issue's bound.
-MAX_NOT_FOUND = 1  # of N_FRAMES: the held-out rates are 0.3-2 % (Baxter 4-5 of 300); Baxter misses one of these
+MAX_NOT_FOUND = {"baxter": 1}  # of N_FRAMES, 0 for the others. Baxter misses frame 000022 on this VM with the
+# code and weights of the session before too (fa3abad: 1 not found, 240.6 mm); its held-out rate is 4-5 of 300
 
 
 def test_every_robot_has_shipped_weights():
@@ -41,7 +42,7 @@ def test_shipped_model_finds_its_robot_in_unseen_frames(tmp_path, estimator):
     torch.manual_seed(0)
     untrained = Estimator(HolisticNet(estimator.net.cfg, estimator.robot), estimator.robot, min_confidence=0.0)
     baseline, _, _ = evaluate_folder(untrained, DreamReader(tmp_path, robot), progress=False)
-    assert report["n_not_found"] <= MAX_NOT_FOUND
+    assert report["n_not_found"] <= MAX_NOT_FOUND.get(robot, 0)
     assert report["add_mean_mm"] < min(1000.0, 0.2 * baseline["add_mean_mm"])
     assert report["add_mean_mm"] < REGRESSION_BOUND_MM.get(robot, 1000.0)
     assert report["reproj_error_px"]["median"] < 0.75 * baseline["reproj_error_px"]["median"]
