@@ -1,14 +1,17 @@
 """Compare settings of the estimator's kinematic fit on a generated validation folder (never a test set): for each
 variant of config/fit_sweep.yaml, the fitted ADD AUC, median and mean ADD, mean joint error, the root keypoint's
 depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
-reference. The same network detections feed every variant.
+reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
+detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs).
 
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
+    python scripts/fit_sweep.py --model panda --data data/panda_val_1012 --variants config/error_budget.yaml
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -17,7 +20,8 @@ import yaml
 from tqdm import tqdm
 
 from holo_pose_ros.data.dream import DreamReader
-from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.estimator import Detection, Estimator
+from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints
 from holo_pose_ros.evaluation.metrics import add_auc
 from holo_pose_ros.fitting import Fitter
 
@@ -43,8 +47,11 @@ def main(argv: list[str] | None = None) -> int:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
         estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {})
         add, add_ff, joints, depth, ms = [], [], [], [], []
+        rng = np.random.default_rng(0)
         for frame, detection in detections:
-            out = estimator.estimate_detection(detection, frame.K, methods=("feed-forward", "fitted"))
+            detection, depth_prior_m = _evidence(detection, frame, estimator, v.get("evidence") or {}, rng)
+            out = estimator.estimate_detection(detection, frame.K, methods=("feed-forward", "fitted"),
+                                               depth_prior_m=depth_prior_m)
             fitted, ff = out["fitted"], out["feed-forward"]
             add.append(_add(fitted, frame))
             add_ff.append(_add(ff, frame))
@@ -57,6 +64,34 @@ def main(argv: list[str] | None = None) -> int:
               f"{np.mean(joints):.1f} | {np.median(depth):+.0f}, {np.median(np.abs(depth)):.0f} | {np.nanmedian(ms):.1f} | "
               f"{add_auc(np.array(add_ff)):.1f} |", flush=True)
     return 0
+
+
+def _evidence(detection: Detection | None, frame, estimator: Estimator, evidence: dict,
+              rng: np.random.Generator) -> tuple[Detection | None, float | None]:
+    """The detection a variant's fit sees and its depth prior (metres; None: the heads'). `evidence` keys:
+    keypoints: detected (default) | truth | shuffled (each frame's detected 2D errors dealt to its keypoints at
+    random: the same sizes without their spatial correlation); clip_px: errors longer than this shortened to it;
+    noise_px: sigma of Gaussian noise added (pixels); depth: heads (default) | truth. Confidences stay detected."""
+    if detection is None or not evidence:
+        return detection, None
+    truth = ground_truth_fit_keypoints(estimator.robot, frame)
+    errors = detection.uv - truth
+    source = evidence.get("keypoints", "detected")
+    if source == "truth":
+        errors = np.zeros_like(errors)
+    elif source == "shuffled":
+        errors = errors[rng.permutation(len(errors))]
+    elif source != "detected":
+        raise ValueError(f"evidence.keypoints: {source!r} is not detected, truth or shuffled")
+    if "clip_px" in evidence:
+        length = np.linalg.norm(errors, axis=1, keepdims=True)
+        errors = errors * np.minimum(1.0, float(evidence["clip_px"]) / np.maximum(length, 1e-9))
+    errors = errors + rng.normal(0.0, float(evidence.get("noise_px", 0.0)), errors.shape)
+    depth = evidence.get("depth", "heads")
+    if depth not in ("heads", "truth"):
+        raise ValueError(f"evidence.depth: {depth!r} is not heads or truth")
+    prior = estimator.fitter.prior_depth(frame.joints, frame.T_cam_base) if depth == "truth" else None
+    return dataclasses.replace(detection, uv=truth + errors), prior
 
 
 def _add(estimate, frame) -> float:
