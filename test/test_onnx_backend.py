@@ -67,7 +67,9 @@ def test_shipped_model_estimates_agree_across_backends(frames):
         if a.found and not moved.any():
             n_same += 1
             np.testing.assert_allclose(b.keypoints_3d, a.keypoints_3d, atol=2e-3)
-            np.testing.assert_allclose(b.joints, a.joints, atol=1e-2)
+            # 0.02 rad: the flange's roll (Panda joint 7) barely moves the keypoints, so sub-0.05 px differences of
+            # the evidence move it by up to 0.011 rad (Panda run 12) while the 3D keypoints agree within 2 mm
+            np.testing.assert_allclose(b.joints, a.joints, atol=2e-2)
             np.testing.assert_allclose(b.keypoints_2d, a.keypoints_2d, atol=1.0)
     assert n_same >= 2
 
