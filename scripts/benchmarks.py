@@ -72,9 +72,8 @@ def accuracy(model: str, data: Path, backend: str, device: str, work: Path) -> d
 def candidate(entry: dict, runs: int, work: Path) -> dict:
     """Network-only latency (median of `runs` batch-1 passes), GFLOPs and parameters of one configuration (Panda
     heads; pretrained weights are irrelevant to speed, so none are loaded)."""
-    base = load_model_config(entry.get("base", "lite")).to_dict()
-    fields = {k: v for k, v in entry.items() if k not in ("label", "base")}
-    cfg = load_model_config({**base, **fields, "pretrained": False, "depth_pretrained": False})
+    fields = {k: v for k, v in entry.items() if k != "label"}
+    cfg = load_model_config({"base": "lite", **fields, "pretrained": False, "depth_pretrained": False})
     net = HolisticNet(cfg, RobotModel("panda")).eval()
     x, K = example_inputs(cfg.input_size)
     timings = {}

@@ -142,3 +142,12 @@ def test_the_papers_full_configuration_builds_and_runs(robot):
         out = net(torch.rand(1, 3, S, S), K)
     assert out["uv"].shape == (1, robot.n_keypoints, 2) and out["depth"].shape == (1,)
     assert sum(p.numel() for p in net.parameters()) > 30e6
+
+
+def test_a_model_config_with_a_base_changes_only_the_fields_it_lists():
+    lite, lite224 = load_model_config("lite").to_dict(), load_model_config("lite224").to_dict()
+    assert {k for k in lite if lite[k] != lite224[k]} == {"name", "input_size", "heatmap_size"}
+    assert (lite224["input_size"], lite224["heatmap_size"]) == (224, 56)
+    assert load_model_config(lite224) == load_model_config("lite224")  # a card's full dict loads as it was saved
+    with pytest.raises(ValueError, match="unknown model config"):
+        load_model_config({"base": "no-such-model"})

@@ -43,16 +43,21 @@ class ModelConfig:
 
 
 def load_model_config(config: str | Path | dict) -> ModelConfig:
-    """A model configuration by name (config/model/<name>.yaml), path, or dict."""
-    if isinstance(config, dict):
-        return ModelConfig(**config)
-    path = Path(config)
-    if not path.suffix:
-        path = config_dir() / "model" / f"{config}.yaml"
-    if not path.is_file():
-        raise ValueError(f"unknown model config '{config}'")
-    with open(path) as f:
-        return ModelConfig(**yaml.safe_load(f))
+    """A model configuration by name (config/model/<name>.yaml), path, or dict. One with `base: <name>` is that
+    configuration with its own fields replacing the base's (a variant lists only what differs)."""
+    if not isinstance(config, dict):
+        path = Path(config)
+        if not path.suffix:
+            path = config_dir() / "model" / f"{config}.yaml"
+        if not path.is_file():
+            raise ValueError(f"unknown model config '{config}'")
+        with open(path) as f:
+            config = yaml.safe_load(f)
+    fields = dict(config)
+    base = fields.pop("base", None)
+    if base is not None:
+        fields = {**load_model_config(base).to_dict(), **fields}
+    return ModelConfig(**fields)
 
 
 class HolisticNet(nn.Module):
