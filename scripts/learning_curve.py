@@ -6,7 +6,9 @@ Each training run's `log.csv` (runs/<name>/log.csv) is copied into docs/training
 ships, so the curve survives the run folder. One line per robot: validation median 2D error of the network's
 keypoints (pixels of the 640 x 480 frame; DREAM's and all fit keypoints) and validation ADD AUC through the
 deployed estimator (feed-forward, and fitted where the log has it), against cumulative training views and wall-clock training hours on the 2-core CPU; the
-shipped model's point is marked (its card's `training.cumulative_views`).
+shipped model's point is marked (its card's `training.cumulative_views`). Where a robot's current recipe (its newest
+run's name without the run number) has two or more runs, a dotted power law through their kept points says where
+the curve is going: its exponent and the views and hours it would take to reach `--target-px`.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 from pathlib import Path
 
 import matplotlib
@@ -21,6 +24,7 @@ import matplotlib.ticker
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,6 +63,27 @@ def shipped_point(robot: str) -> dict | None:
             "auc": validation.get("add_auc")}
 
 
+def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float) -> dict | None:
+    """Power law px = c * views^-alpha through the kept points (lowest fit-keypoint error) of the last `n_runs` runs
+    of `robot`'s current recipe (runs named like its newest one up to the run number), and the views and training
+    hours (at those runs' mean views/s) at which it reaches `target_px`; None with fewer than two such runs."""
+    names = [name for name in runs if name.split("_")[0] == robot]
+    if not names:
+        return None
+    recipe = re.sub(r"\d+$", "", names[-1])
+    family = [name for name in names if re.fullmatch(re.escape(recipe) + r"\d*", name)][-n_runs:]
+    if len(family) < 2:
+        return None
+    kept = [min(runs[name], key=lambda r: r["val_kp2d_fit_median_px"]) for name in family]
+    views = np.array([r["views"] for r in kept])
+    px = np.array([r["val_kp2d_fit_median_px"] for r in kept])
+    slope, intercept = np.polyfit(np.log(views), np.log(px), 1)
+    speed = float(np.mean([r["images_per_s"] for name in family for r in runs[name] if r.get("images_per_s")]))
+    needed = math.exp((math.log(target_px) - intercept) / slope) if slope < 0 else math.inf
+    return {"recipe": recipe, "runs": family, "views": views, "px": px, "alpha": -slope, "intercept": intercept,
+            "views_needed": needed, "hours_needed": max(needed - views[-1], 0.0) / speed / 3600, "views_s": speed}
+
+
 def _cell(value) -> str:
     """A table cell: one decimal, or a dash where the log has no value (runs before the column existed)."""
     return "—" if value is None else f"{value:.1f}"
@@ -69,6 +94,8 @@ def main() -> None:
     parser.add_argument("--logs", default=str(ROOT / "docs" / "training_logs"), help="folder of <run>.csv logs")
     parser.add_argument("--out", default=str(ROOT / "docs" / "learning_curve.png"))
     parser.add_argument("--readme", default=str(ROOT / "README.md"))
+    parser.add_argument("--trend-runs", type=int, default=3, help="runs of the current recipe the power law goes through")
+    parser.add_argument("--target-px", type=float, default=3.0, help="fit-keypoint error the projection is for (px)")
     args = parser.parse_args()
     runs = {p.stem: read_log(p) for p in sorted(Path(args.logs).glob("*.csv"))}
     runs = dict(sorted(((name, rows) for name, rows in runs.items() if rows), key=lambda run: run[1][0]["views"]))
@@ -103,6 +130,21 @@ def main() -> None:
             table.append(f"| {name} ({tag}) | {robot} | {int(r['views']):,} | {r.get('train_hours') or math.nan:.2f} | "
                          f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
                          f"{(r.get('val_add_auc') or 0.0):.1f} / {_cell(r.get('val_fitted_add_auc'))} |")
+    trends = []
+    for robot in dict.fromkeys(name.split("_")[0] for name in runs):
+        t = trend(runs, robot, args.trend_runs, args.target_px)
+        if t is None:
+            continue
+        reach = (f"{t['views_needed'] / 1e6:,.1f} M views, {t['hours_needed']:,.0f} more training hours at "
+                 f"{t['views_s']:.0f} views/s" if t["hours_needed"] < 1e5 else "beyond 100,000 training hours")
+        trends.append(f"- {robot}, `{t['recipe']}*` ({', '.join(t['runs'])}): px ~ views^-{t['alpha']:.2f}; "
+                      f"{args.target_px:g} px: {reach}")
+        x = np.geomspace(t["views"][0], t["views"][-1] * 1.5, 20)
+        axes[0].plot(x / 1e3, np.exp(t["intercept"]) * x ** -t["alpha"], "k:", lw=1.5,
+                     label="power law of the current recipe" if len(trends) == 1 else None)
+    if trends:
+        table += ["", f"Where the curves go (a power law through the kept points of each robot's last "
+                      f"{args.trend_runs} runs of its current recipe):", *trends]
     axes[0].set(xlabel="training views (thousands, cumulative: the warm-start model's included)", ylabel="validation median 2D error (px, 640x480)",
                 yscale="log", title="2D error vs views (solid: fit keypoints, dashed: DREAM's)")
     axes[1].set(xlabel="wall-clock training hours (2-core CPU)", ylabel="fit keypoints, median px", yscale="log",
