@@ -65,13 +65,14 @@ def shipped_point(robot: str) -> dict | None:
 
 def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float) -> dict | None:
     """Power law px = c * views^-alpha through the kept points (lowest fit-keypoint error) of the last `n_runs` runs
-    of `robot`'s current recipe (runs named like its newest one up to the run number), and the views and training
+    of `robot`'s current recipe (runs named like its newest one up to the run number and a `_not_shipped`), and the views and training
     hours (at those runs' mean views/s) at which it reaches `target_px`; None with fewer than two such runs."""
     names = [name for name in runs if name.split("_")[0] == robot]
     if not names:
         return None
-    recipe = re.sub(r"\d+$", "", names[-1])
-    family = [name for name in names if re.fullmatch(re.escape(recipe) + r"\d*", name)][-n_runs:]
+    run_number = r"\d*(_not_shipped)?"  # a run that lost to the shipped one is still a point of its recipe's curve
+    recipe = re.sub(run_number + "$", "", names[-1])
+    family = [name for name in names if re.fullmatch(re.escape(recipe) + run_number, name)][-n_runs:]
     if len(family) < 2:
         return None
     kept = [min(runs[name], key=lambda r: r["val_kp2d_fit_median_px"]) for name in family]
