@@ -63,6 +63,11 @@ def shipped_point(robot: str) -> dict | None:
             "auc": validation.get("add_auc")}
 
 
+def kept_row(rows: list[dict]) -> dict:
+    """The validation row a run keeps: its lowest median 2D error of the fit keypoints (the trainer's `best`)."""
+    return min(rows, key=lambda r: r["val_kp2d_fit_median_px"])
+
+
 def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float) -> dict | None:
     """Power law px = c * views^-alpha through the kept points (lowest fit-keypoint error) of the last `n_runs` runs
     of `robot`'s current recipe (runs named like its newest one up to the run number and a `_not_shipped`), and the views and training
@@ -75,7 +80,7 @@ def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float
     family = [name for name in names if re.fullmatch(re.escape(recipe) + run_number, name)][-n_runs:]
     if len(family) < 2:
         return None
-    kept = [min(runs[name], key=lambda r: r["val_kp2d_fit_median_px"]) for name in family]
+    kept = [kept_row(runs[name]) for name in family]
     views = np.array([r["views"] for r in kept])
     px = np.array([r["val_kp2d_fit_median_px"] for r in kept])
     slope, intercept = np.polyfit(np.log(views), np.log(px), 1)
@@ -126,7 +131,7 @@ def main() -> None:
             if point.get("hours"):
                 axes[1].plot([point["hours"]], [point["fit"]], "k*", ms=14)
         last = rows[-1]
-        best = min(rows, key=lambda r: r["val_kp2d_fit_median_px"])
+        best = kept_row(rows)
         for r, tag in ((best, "best"), (last, "last")):
             table.append(f"| {name} ({tag}) | {robot} | {int(r['views']):,} | {r.get('train_hours') or math.nan:.2f} | "
                          f"{r['val_kp2d_dream_median_px']:.1f} / {r['val_kp2d_fit_median_px']:.1f} | "
