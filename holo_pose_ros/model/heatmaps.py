@@ -35,26 +35,33 @@ def heatmap_cross_entropy(logits: torch.Tensor, targets: torch.Tensor, mask: tor
     return (ce * m).sum() / m.sum().clamp(min=1.0)
 
 
+def expected_positions(logits: torch.Tensor, crop_size: int) -> torch.Tensor:
+    """(B, K, H, W) logits -> (B, K, 2) crop pixels: the expectation of each heatmap's softmax (soft-argmax). A
+    loss on it (integral regression) makes the decoded position unbiased, where the cross-entropy alone rewards
+    any peaked distribution near the point."""
+    B, K, H, W = logits.shape
+    p = torch.softmax(logits.flatten(2).float(), -1).view(B, K, H, W)
+    x = (p.sum(2) * cell_centres(W, crop_size, logits.device)).sum(-1)
+    y = (p.sum(3) * cell_centres(H, crop_size, logits.device)).sum(-1)
+    return torch.stack([x, y], -1)
+
+
 def decode_heatmaps(logits: torch.Tensor, crop_size: int, window: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, K, H, W) logits -> (uv (B, K, 2) crop pixels, confidence (B, K) in [0, 1]).
 
     The peak is the arg-max cell, refined to sub-cell precision by the vertex of a parabola through the
-    log-probabilities of the cell and its two neighbours along each axis (exact for a Gaussian-shaped peak; the
-    shift is clamped to half a cell). The confidence is the softmax mass within `window` cells of the peak: a
-    sharp, single peak gives ~1, an occluded or out-of-crop point a spread or flat heatmap and a low value."""
+    log-probabilities of three neighbouring cells along each axis (exact for a Gaussian-shaped peak). At the
+    map's border the three cells are the border cell and the two inside it, and the vertex may lie up to 1.5 cells
+    beyond the border: a point truncated by the crop's edge decodes where it is, not pulled half a cell inwards
+    (padding by replication did that, a bias towards the crop's centre). Elsewhere the shift is clamped to half a
+    cell. The confidence is the softmax mass within `window` cells of the peak: a sharp, single peak gives ~1, an
+    occluded or out-of-crop point a spread or flat heatmap and a low value."""
     B, K, H, W = logits.shape
     log_p = torch.log_softmax(logits.flatten(2).float(), -1).view(B, K, H, W)
     index = log_p.flatten(2).argmax(-1)
     iy, ix = index // W, index % W
-    padded = torch.nn.functional.pad(log_p, (1, 1, 1, 1), mode="replicate")
-    flat = padded.flatten(2)
-
-    def at(dy: int, dx: int) -> torch.Tensor:
-        return flat.gather(-1, ((iy + 1 + dy) * (W + 2) + ix + 1 + dx).unsqueeze(-1)).squeeze(-1)
-
-    centre = at(0, 0)
-    x = ix.to(log_p.dtype) + _vertex(at(0, -1), centre, at(0, 1))
-    y = iy.to(log_p.dtype) + _vertex(at(-1, 0), centre, at(1, 0))
+    x = _refine(log_p, iy, ix, W, axis=-1)
+    y = _refine(log_p, iy, ix, H, axis=-2)
     u = (x + 0.5) * crop_size / W - 0.5
     v = (y + 0.5) * crop_size / H - 0.5
     rows = torch.arange(H, device=logits.device).view(1, 1, H, 1)
@@ -64,8 +71,24 @@ def decode_heatmaps(logits: torch.Tensor, crop_size: int, window: int = 2) -> tu
     return torch.stack([u, v], -1), confidence
 
 
-def _vertex(left: torch.Tensor, centre: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """Offset in (-0.5, 0.5) of the vertex of the parabola through (-1, left), (0, centre), (1, right)."""
-    curvature = left - 2 * centre + right
+def _refine(log_p: torch.Tensor, iy: torch.Tensor, ix: torch.Tensor, n: int, axis: int) -> torch.Tensor:
+    """Sub-cell position (cells) along `axis` (-1: columns, -2: rows, length n >= 3) of each arg-max (iy, ix):
+    the parabola vertex through the cells centre - 1, centre, centre + 1, the centre moved inside the map at a
+    border; clamped to the peak cell +- 0.5, or to 1.5 cells beyond the map where the peak is on its border."""
+    W = log_p.shape[-1]
+    flat = log_p.flatten(2)
+    peak = ix if axis == -1 else iy
+    centre = peak.clamp(1, n - 2)
+    step = 1 if axis == -1 else W
+
+    def at(offset: int) -> torch.Tensor:
+        index = (iy * W + ix) + (centre - peak + offset) * step
+        return flat.gather(-1, index.unsqueeze(-1)).squeeze(-1)
+
+    left, mid, right = at(-1), at(0), at(1)
+    curvature = left - 2 * mid + right
     shift = 0.5 * (left - right) / torch.where(curvature < -1e-6, curvature, torch.full_like(curvature, -1e-6))
-    return shift.clamp(-0.5, 0.5)
+    position = centre.to(log_p.dtype) + shift
+    low = torch.where(peak == 0, -1.5, peak - 0.5).to(log_p.dtype)
+    high = torch.where(peak == n - 1, n + 0.5, peak + 0.5).to(log_p.dtype)
+    return torch.minimum(torch.maximum(position, low), high)
