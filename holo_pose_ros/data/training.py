@@ -5,7 +5,8 @@ as the deployed estimator would see it:
     scale and aspect jitter, so imperfect boxes do not hurt;
   - `full`: the whole letterboxed frame (the localizer's pass);
   - `negative`: a `crop` or `full` view with no robot (presence target 0).
-Areas of a view outside the original frame are black, as in `crop_image`. Sample i depends only on (seed, i)."""
+Areas of a view outside the original frame are black, as in `crop_image`; the view's robot-foreground mask (S x S
+bool, the segmentation target) is false there. Sample i depends only on (seed, i)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from holo_pose_ros.data.render import DISTRACTOR_LABEL
 from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, full_image_box
 
@@ -100,7 +102,9 @@ class RenderedViews(torch.utils.data.Dataset):
                                        tuple(gen["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
         image = _post_process(result.rgba[..., :3] * alpha + background * (1.0 - alpha), gen["post"], rng)
-        image[outside_frame_mask(box, S, W, H)] = 0
+        outside = outside_frame_mask(box, S, W, H)
+        image[outside] = 0
+        foreground = (result.labels > 0) & (result.labels != DISTRACTOR_LABEL) & ~outside  # robot pixels in view
         T_cam_root = scene.T_cam_base @ links[model.spec.keypoints[model.root_index].link][0].numpy()
         uv = project(kp_cam, K_crop)
         visible = (uv >= -0.5).all(1) & (uv <= S - 0.5).all(1) & in_image(project(kp_cam, K), W, H)
@@ -113,4 +117,5 @@ class RenderedViews(torch.utils.data.Dataset):
             "K_crop": f32(K_crop), "joints": f32(scene.joints), "keypoints_3d": f32(kp_cam), "uv": f32(uv),
             "visible": torch.from_numpy(visible), "uv_fit": f32(uv_fit), "visible_fit": torch.from_numpy(visible_fit), "R_root": f32(T_cam_root[:3, :3]), "t_root": f32(T_cam_root[:3, 3]),
             "presence": torch.tensor(float(mode != "negative")), "mode": torch.tensor(MODES.index(mode)),
+            "mask": torch.from_numpy(foreground),
         }

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from holo_pose_ros.model.heatmaps import decode_heatmaps
@@ -83,6 +84,59 @@ at zero, so a network warm-started without them computes the same function at fi
             out["heatmap_logits"] = heatmaps
             if not self.training:  # the loss reads the logits; decoding costs ~4 % of a CPU training step
                 out["fit_uv"], out["fit_confidence"] = decode_heatmaps(heatmaps, self.crop_size)
+        return out
+
+
+def _separable(channels: int) -> nn.Sequential:
+    """A depthwise 3x3 then pointwise 1x1 convolution, each with BatchNorm and ReLU: a 3x3 receptive step at
+    about 1/9 of a dense 3x3's cost."""
+    return nn.Sequential(
+        nn.Conv2d(channels, channels, 3, padding=1, groups=channels, bias=False), nn.BatchNorm2d(channels), nn.ReLU(inplace=True),
+        nn.Conv2d(channels, channels, 1, bias=False), nn.BatchNorm2d(channels), nn.ReLU(inplace=True))
+
+
+class PyramidHead(nn.Module):
+    """KeypointNet sized for the CPU (an FPN-lite): 1x1 lateral projections of the backbone's maps at strides 32,
+    16, 8 and 4 to `width` channels, merged top-down by bilinear upsampling and sums, each level refined by
+    depthwise-separable convolutions. The paper's 3D volume is read at stride 8 (the feed-forward head's starts
+    and root pixel need no finer), the fit keypoints' 2D heatmaps and the robot-foreground mask at stride 4.
+    Same outputs as KeypointHead, plus `mask_logits` (B, 1, H, W) with `segmentation`."""
+
+    def __init__(self, channels: int, skip_channels: tuple[int, int, int], n_keypoints: int, crop_size: int,
+                 size: int = 56, depth_bins: int = 32, width: int = 96, depth_range_m: float = 1.3, n_fit: int = 0,
+                 segmentation: bool = True, blocks: tuple[int, int, int] = (1, 2, 2)):
+        super().__init__()
+        if size * 4 != crop_size:
+            raise ValueError(f"the pyramid head's heatmaps are at stride 4: size {size} must be crop_size / 4 ({crop_size})")
+        self.lateral = nn.ModuleList(nn.Sequential(nn.Conv2d(c, width, 1, bias=False), nn.BatchNorm2d(width))
+                                     for c in (channels, *skip_channels))
+        self.refine = nn.ModuleList(nn.Sequential(*(_separable(width) for _ in range(n))) for n in blocks)
+        self.out = nn.Conv2d(width, n_keypoints * depth_bins, 1)
+        self.fit_out = nn.Conv2d(width, n_fit, 1) if n_fit else None
+        self.mask_out = nn.Conv2d(width, 1, 1) if segmentation else None
+        self.n, self.d, self.size, self.crop_size, self.depth_range = n_keypoints, depth_bins, size, crop_size, depth_range_m
+
+    def forward(self, features: torch.Tensor, skips: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        """(B, C, S/32, S/32) and the skip maps at strides 16, 8, 4 -> uv (B, N, 2) crop px, dz (B, N) m,
+        confidence (B, N); heatmap_logits (B, M, H, W) and in eval mode fit_uv (B, M, 2) crop px and fit_confidence
+        (B, M); mask_logits (B, 1, H, W) (robot foreground, before the sigmoid)."""
+        x = self.lateral[0](features)
+        levels = []
+        for lateral, refine, skip in zip(self.lateral[1:], self.refine, skips):
+            x = refine(F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False) + lateral(skip))
+            levels.append(x)
+        stride8, stride4 = levels[1], levels[2]
+        logits = self.out(stride8)
+        B, H8 = logits.shape[0], logits.shape[-1]
+        prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, H8, H8)
+        out = soft_argmax_3d(prob, self.crop_size, self.depth_range)
+        if self.fit_out is not None:
+            heatmaps = self.fit_out(stride4)
+            out["heatmap_logits"] = heatmaps
+            if not self.training:
+                out["fit_uv"], out["fit_confidence"] = decode_heatmaps(heatmaps, self.crop_size)
+        if self.mask_out is not None:
+            out["mask_logits"] = self.mask_out(stride4)
         return out
 
 

@@ -13,7 +13,7 @@ from torch import nn
 
 from holo_pose_ros.geometry.rotation import matrix_to_rot6d, rot6d_to_matrix
 from holo_pose_ros.model.backbones import build_backbone
-from holo_pose_ros.model.heads import DepthHead, IterativeRegressor, KeypointHead, reference_depth
+from holo_pose_ros.model.heads import DepthHead, IterativeRegressor, KeypointHead, PyramidHead, reference_depth
 from holo_pose_ros.resources import config_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -37,6 +37,9 @@ class ModelConfig:
     fit_heatmaps: bool = False      # 2D heatmaps of the robot's fit keypoints (older cards have none)
     heatmap_sigma: float = 1.0      # Gaussian target sigma, heatmap cells
     skip_connections: bool = False  # the keypoint head also sees the backbone's stride-16/8/4 maps (older: no)
+    head: str = "deconv"            # deconv: KeypointHead (the paper's deconvolutions) | pyramid: PyramidHead (FPN-lite)
+    head_channels: int = 96         # width of the pyramid head's levels
+    segmentation: bool = False      # the pyramid head also predicts the robot-foreground mask (stride 4)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -79,10 +82,22 @@ class HolisticNet(nn.Module):
         self.register_buffer("depth_mean", torch.tensor(depth_info.mean).view(1, 3, 1, 1))
         self.register_buffer("depth_std", torch.tensor(depth_info.std).view(1, 3, 1, 1))
         self.depth_head = DepthHead(depth_info.channels)
-        self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
-                                          cfg.depth_bins, cfg.deconv_channels, spec.constants.get("keypoint_depth_range_m", 1.3),
-                                          robot.n_fit_keypoints if cfg.fit_heatmaps else 0,
-                                          info.skip_channels if cfg.skip_connections else ())
+        depth_range_m = spec.constants.get("keypoint_depth_range_m", 1.3)
+        n_fit = robot.n_fit_keypoints if cfg.fit_heatmaps else 0
+        if cfg.head == "pyramid":
+            if not cfg.skip_connections:
+                raise ValueError("the pyramid head reads the backbone's skip maps: set skip_connections: true")
+            self.keypoint_head = PyramidHead(info.channels, info.skip_channels, robot.n_keypoints, cfg.input_size,
+                                             cfg.heatmap_size, cfg.depth_bins, cfg.head_channels, depth_range_m, n_fit,
+                                             cfg.segmentation)
+        elif cfg.head == "deconv":
+            if cfg.segmentation:
+                raise ValueError("segmentation needs head: pyramid")
+            self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
+                                              cfg.depth_bins, cfg.deconv_channels, depth_range_m, n_fit,
+                                              info.skip_channels if cfg.skip_connections else ())
+        else:
+            raise ValueError(f"unknown head '{cfg.head}' (deconv, pyramid)")
         lower, upper = robot.lower.float().cpu(), robot.upper.float().cpu()
         self.register_buffer("joint_mid", (lower + upper) / 2)
         self.register_buffer("joint_half", (upper - lower) / 2)
@@ -115,7 +130,7 @@ class HolisticNet(nn.Module):
             "keypoints_reg": keypoints_reg, "t": keypoints_reg[:, self.root_index],
             "joints_norm": joints_norm, "joints": self.joint_mid + self.joint_half * joints_norm,
             "rot6d": r6, "R": rot6d_to_matrix(r6), "presence_logit": self.presence(pooled).squeeze(-1),
-            **{k: kp[k] for k in ("heatmap_logits", "fit_uv", "fit_confidence") if k in kp},
+            **{k: kp[k] for k in ("heatmap_logits", "fit_uv", "fit_confidence", "mask_logits") if k in kp},
         }
 
 

@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from holo_pose_ros.data.training import MODES
-from holo_pose_ros.model.heatmaps import gaussian_targets, heatmap_cross_entropy
+from holo_pose_ros.model.heatmaps import expected_positions, gaussian_targets, heatmap_cross_entropy
 
 CROP, FULL, NEGATIVE = (MODES.index(m) for m in MODES)
 
@@ -29,8 +29,10 @@ def project_batch(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], joint_mid: torch.Tensor,
                       joint_half: torch.Tensor, crop_size: int, heatmap_sigma: float = 1.0) -> dict[str, torch.Tensor]:
     """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets.
-    `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points) is there
-    when the network has fit heatmaps."""
+    `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points) and
+    `fit_coord` (L1 of their soft-argmax, heatmap cells) are there when the network has fit heatmaps; `mask`
+    (binary cross-entropy of the robot foreground against each cell's robot fraction, every view) with a
+    segmentation head."""
     mode, crop = batch["mode"], batch["mode"] == CROP
     robot = mode != NEGATIVE
     visible = batch["visible"] & robot[:, None]
@@ -42,7 +44,14 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
     if "heatmap_logits" in out:
         logits = out["heatmap_logits"]
         targets = gaussian_targets(batch["uv_fit"], logits.shape[-1], crop_size, heatmap_sigma)
-        extra["heatmap"] = heatmap_cross_entropy(logits, targets, batch["visible_fit"] & robot[:, None])
+        seen = batch["visible_fit"] & robot[:, None]
+        extra["heatmap"] = heatmap_cross_entropy(logits, targets, seen)
+        cell_px = crop_size / logits.shape[-1]
+        extra["fit_coord"] = _masked_mean((expected_positions(logits, crop_size) - batch["uv_fit"]).abs().sum(-1) / cell_px, seen)
+    if "mask_logits" in out:
+        mask_logits = out["mask_logits"][:, 0].float()
+        target = F.adaptive_avg_pool2d(batch["mask"].float()[:, None], mask_logits.shape[-2:])[:, 0]  # robot fraction of each cell
+        extra["mask"] = F.binary_cross_entropy_with_logits(mask_logits, target)
     return {**extra,
         "joints": _masked_mean(F.smooth_l1_loss(out["joints_norm"], gt_norm, reduction="none", beta=0.1), crop),
         "rotation": _masked_mean((out["R"] - batch["R_root"]).square().sum((1, 2)), crop),

@@ -203,6 +203,15 @@ class Trainer:
             self.net.backbone, self.cfg["freeze_blocks"], self.model_cfg.input_size,
             self.out / f"frozen_prefix_rank{self.rank}.onnx", threads=torch.get_num_threads())
 
+    def _param_groups(self, stage: dict) -> list[dict]:
+        """The trainable parameters in two groups: the heads (first; the logged lr is theirs) and the backbone,
+        whose learning rate is the stage's times `backbone_lr_factor` (default 1). A stage that trains a freshly
+        initialized head with factor 0 keeps the head's first, large and random gradients out of the backbone."""
+        backbone = {id(p) for p in self.net.backbone.parameters()}
+        trainable = [p for p in self.net.parameters() if p.requires_grad]
+        return [{"params": [p for p in trainable if id(p) not in backbone], "lr_scale": 1.0},
+                {"params": [p for p in trainable if id(p) in backbone], "lr_scale": float(stage.get("backbone_lr_factor", 1.0))}]
+
     def _train_hours(self) -> float:
         """Cumulative wall-clock training hours (on this machine's cores) of the campaign so far."""
         return self.hours_before + self.hours_this_run + (time.perf_counter() - self._clock) / 3600
@@ -270,7 +279,7 @@ class Trainer:
         for stage_index in range(self.stage_index, len(self.cfg["stages"])):
             stage = self.cfg["stages"][stage_index]
             self.stage_index = stage_index
-            optimizer = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=stage["lr"], weight_decay=self.cfg.get("weight_decay", 1e-4))
+            optimizer = torch.optim.AdamW(self._param_groups(stage), lr=stage["lr"], weight_decay=self.cfg.get("weight_decay", 1e-4))
             if state is not None and state["stage_index"] == stage_index:
                 optimizer.load_state_dict(state["optimizer"])
             stage_step = self.step - done_before
@@ -279,7 +288,7 @@ class Trainer:
             for batch in loader:
                 batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
                 for group in optimizer.param_groups:
-                    group["lr"] = stage["lr"] * lr_factor(stage_step, stage["steps"], stage.get("warmup_steps", 0))
+                    group["lr"] = stage["lr"] * group["lr_scale"] * lr_factor(stage_step, stage["steps"], stage.get("warmup_steps", 0))
                 image = batch["image"].to(memory_format=torch.channels_last)
                 with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cuda):
                     out = net(image, batch["K_crop"])
