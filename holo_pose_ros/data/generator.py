@@ -126,7 +126,7 @@ class FrameRenderer:
                                                 [link for link in self.all_meshes if link not in self.meshes])
             poses.update({link: other.T_cam_base @ T[0].numpy() for link, T in links.items()})
         result = self.renderer.render(poses, self.all_meshes, self.K, scene.materials, scene.light,
-                                      scene.distractors)
+                                      scene.distractors, scene.shading)
         background = random_background(rng, job.height, job.width, tuple(cfg["background"]["layers"]),
                                        tuple(cfg["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
@@ -140,15 +140,94 @@ class FrameRenderer:
         return index
 
 
+UPSCALE_INTERPOLATIONS = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}  # post.upscale_interpolation
+
+
 def _post_process(image: np.ndarray, cfg: dict, rng: np.random.Generator) -> np.ndarray:
-    """Camera-like degradations: per-channel gain, optional Gaussian blur, sensor noise; -> uint8 RGB."""
+    """Camera-like degradations of a float RGB image (grey levels 0..255) -> uint8 RGB, in the order a camera
+    applies them: per-channel gain; optics (motion blur, Gaussian blur, vignetting); a lower-resolution sensor
+    (downscale then upscale); sensor noise (shot, then Gaussian read noise); tone curve; JPEG. Steps other than
+    gain, blur and read noise run only when their optional key is set in `cfg` and draw nothing from `rng`
+    otherwise, so older configs give the same pixels for the same rng."""
     image = image * rng.uniform(cfg["colour_gain"][0], cfg["colour_gain"][1], 3).astype(np.float32)
+    if (lengths := cfg.get("motion_blur_length_px")) and rng.random() < cfg.get("motion_blur_probability", 1.0):
+        image = motion_blur(image, rng.uniform(*lengths), rng.uniform(0.0, np.pi))
     if rng.random() < cfg["blur_probability"]:
         image = cv2.GaussianBlur(image, (0, 0), rng.uniform(*cfg["blur_sigma_px"]))
+    if strengths := cfg.get("vignette_strength"):
+        image = vignette(image, rng.uniform(*strengths))
+    if factors := cfg.get("downscale_factor"):
+        names = cfg.get("upscale_interpolation", ["linear"])
+        image = resample(image, rng.uniform(*factors), UPSCALE_INTERPOLATIONS[names[rng.integers(len(names))]])
+    if gains := cfg.get("shot_noise_gain"):
+        image = shot_noise(image, rng.uniform(*gains), rng)
     sigma = rng.uniform(*cfg["noise_sigma"])
     if sigma > 0:
         image = image + rng.normal(0.0, sigma, image.shape).astype(np.float32)
-    return np.clip(image, 0, 255).astype(np.uint8)
+    gammas, contrasts = cfg.get("tone_gamma"), cfg.get("tone_contrast")
+    if gammas or contrasts:
+        image = tone_curve(image, rng.uniform(*gammas) if gammas else 1.0,
+                           rng.uniform(*contrasts) if contrasts else 0.0)
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    if qualities := cfg.get("jpeg_quality"):
+        image = jpeg_roundtrip(image, int(rng.integers(qualities[0], qualities[1] + 1)))
+    return image
+
+
+def motion_blur(image: np.ndarray, length_px: float, angle_rad: float) -> np.ndarray:
+    """Linear motion blur: the mean of the image along a segment `length_px` long (pixels) at `angle_rad` from
+    the image x axis, centred on each pixel (an anti-aliased line kernel)."""
+    if length_px <= 1.0:
+        return image
+    size = int(np.ceil(length_px)) | 1
+    centre, half = size / 2.0 - 0.5, length_px / 2.0 - 0.5
+    dx, dy = half * np.cos(angle_rad), half * np.sin(angle_rad)
+    shift = 4  # cv2.line's fixed-point sub-pixel coordinates: 2^shift units per pixel
+    p0 = (round((centre - dx) * 2 ** shift), round((centre - dy) * 2 ** shift))
+    p1 = (round((centre + dx) * 2 ** shift), round((centre + dy) * 2 ** shift))
+    kernel = cv2.line(np.zeros((size, size), np.float32), p0, p1, 1.0, 1, cv2.LINE_AA, shift=shift)
+    return cv2.filter2D(image, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
+
+
+def vignette(image: np.ndarray, strength: float) -> np.ndarray:
+    """Lens vignetting: brightness falls off as 1 - strength r^2, r the distance from the image centre over the
+    half-diagonal (corners keep 1 - strength of their brightness)."""
+    h, w = image.shape[:2]
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    r2 = ((x - (w - 1) / 2.0) ** 2 + (y - (h - 1) / 2.0) ** 2) / (((w - 1) / 2.0) ** 2 + ((h - 1) / 2.0) ** 2)
+    return image * (1.0 - strength * r2)[..., None]
+
+
+def resample(image: np.ndarray, factor: float, interpolation: int) -> np.ndarray:
+    """A lower-resolution sensor: shrink by `factor` (>= 1) with area averaging, then enlarge back to the input
+    size with `interpolation` (cv2.INTER_LINEAR or INTER_CUBIC); detail finer than `factor` pixels is lost."""
+    h, w = image.shape[:2]
+    small = cv2.resize(image, (max(1, round(w / factor)), max(1, round(h / factor))), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, (w, h), interpolation=interpolation)
+
+
+def shot_noise(image: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
+    """Signal-dependent (photon shot) noise, Gaussian approximation of Poisson: variance `gain` x signal, in grey
+    levels (gain = grey levels per photo-electron)."""
+    sigma = np.sqrt(gain * np.maximum(image, 0.0))
+    return image + (rng.standard_normal(image.shape, dtype=np.float32) * sigma).astype(np.float32)
+
+
+def tone_curve(image: np.ndarray, gamma: float, contrast: float) -> np.ndarray:
+    """A camera's tone curve on grey levels 0..255: x^gamma on x in [0, 1] (gamma < 1 brightens), then an S curve
+    x + contrast (smoothstep(x) - x) (contrast in [-1, 1]: > 0 steeper mid-tones, < 0 flatter; monotonic)."""
+    x = np.clip(image / 255.0, 0.0, 1.0) ** gamma
+    x = x + contrast * (x * x * (3.0 - 2.0 * x) - x)
+    return (x * 255.0).astype(np.float32)
+
+
+def jpeg_roundtrip(image: np.ndarray, quality: int) -> np.ndarray:
+    """Encode a uint8 RGB image as JPEG at `quality` (0..100) and decode it: block and ringing artefacts, chroma
+    subsampling."""
+    ok, data = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return cv2.cvtColor(cv2.imdecode(data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
 _WORKER: FrameRenderer | None = None

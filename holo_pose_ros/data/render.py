@@ -16,6 +16,7 @@ import trimesh
 from holo_pose_ros.data.meshes import CREASE_ANGLE, LinkMesh, crease_normals
 
 PATTERNS = ("plain", "stripes", "checker", "noise")
+SHADINGS = ("phong", "flat", "toon")  # fragment shader modes, see Shading
 PRIMITIVE_KINDS = ("box", "sphere", "cylinder")
 DISTRACTOR_LABEL = 255  # label of distractor pixels; robot links get 1..254, nothing 0
 
@@ -50,6 +51,8 @@ uniform vec3 u_light_dir;       // camera frame, from the light toward the scene
 uniform vec3 u_light_color;
 uniform vec3 u_ambient;
 uniform uint u_label;
+uniform int u_shading;          // index into SHADINGS
+uniform float u_bands;          // toon: number of diffuse levels
 in vec3 v_obj;
 in vec3 v_cam;
 in vec3 v_normal;
@@ -82,11 +85,16 @@ float pattern_weight(vec3 p) {
 void main() {
     vec3 albedo = pow(mix(u_color, u_color2, pattern_weight(v_obj)), vec3(2.2));
     vec3 n = normalize(v_normal);
+    if (u_shading == 1) n = normalize(cross(dFdx(v_cam), dFdy(v_cam)));  // flat: the facet's own normal
     vec3 v = normalize(-v_cam);
     if (dot(n, v) < 0.0) n = -n;  // two-sided lighting: meshes may be open or inconsistently wound
     vec3 l = -normalize(u_light_dir);
     float diffuse = max(dot(n, l), 0.0);
     float spec = diffuse > 0.0 ? u_specular * pow(max(dot(n, normalize(l + v)), 0.0), u_shininess) : 0.0;
+    if (u_shading == 2) {  // toon: u_bands diffuse levels 0 .. 1 and a hard-edged highlight
+        diffuse = min(floor(diffuse * u_bands), u_bands - 1.0) / (u_bands - 1.0);
+        spec = spec > 0.5 * u_specular ? u_specular : 0.0;
+    }
     vec3 linear = albedo * (u_ambient + u_light_color * diffuse) + u_light_color * spec;
     f_color = vec4(pow(clamp(linear, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
     f_label = u_label;
@@ -120,6 +128,22 @@ class Light:
     direction_cam: tuple[float, float, float] | np.ndarray = (0.3, 0.6, 1.0)
     color: tuple[float, float, float] | np.ndarray = (0.9, 0.9, 0.9)
     ambient: tuple[float, float, float] | np.ndarray = (0.25, 0.25, 0.25)
+
+
+@dataclass(frozen=True)
+class Shading:
+    """How surfaces are lit, for the whole frame: `phong` (smooth Blinn-Phong, the training looks), `flat` (one
+    normal per facet, from screen-space derivatives of the camera position) or `toon` (Blinn-Phong with the
+    diffuse term quantized to `bands` levels, 2 or more, and a hard-edged highlight)."""
+
+    mode: str = "phong"
+    bands: int = 3
+
+    def __post_init__(self):
+        if self.mode not in SHADINGS:
+            raise ValueError(f"unknown shading '{self.mode}', expected one of {SHADINGS}")
+        if self.bands < 2:
+            raise ValueError(f"toon shading needs at least 2 bands, got {self.bands}")
 
 
 @dataclass(frozen=True)
@@ -243,17 +267,19 @@ class Renderer:
         self._gl = None
 
     def render(self, link_poses: dict[str, np.ndarray], meshes: dict[str, LinkMesh], K: np.ndarray,
-               materials: dict[str, Material], light: Light, distractors: Sequence[Primitive] = ()) -> RenderResult:
+               materials: dict[str, Material], light: Light, distractors: Sequence[Primitive] = (),
+               shading: Shading = Shading()) -> RenderResult:
         """Draw every link of `meshes` at its pose T_cam<-link (4, 4, metres) with `materials[link]` (default: the
-        mesh colour, plain) and the distractors, through camera K (3, 3, pixels). Meshes are uploaded once per
-        LinkMesh object and kept: pass the same objects every frame rather than reloading them."""
+        mesh colour, plain) and the distractors, through camera K (3, 3, pixels), all lit with `shading`. Meshes
+        are uploaded once per LinkMesh object and kept: pass the same objects every frame rather than reloading
+        them."""
         if len(meshes) >= DISTRACTOR_LABEL:
             raise ValueError(f"at most {DISTRACTOR_LABEL - 1} links can be labelled, got {len(meshes)}")
         gl = self._state()
         with gl.ctx:  # make this renderer's context current: a process may hold several
             gl.fbo.use()
             gl.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-            self._set_camera(gl, np.asarray(K, float), light)
+            self._set_camera(gl, np.asarray(K, float), light, shading)
             ones = np.ones(3, np.float32)
             for label, (name, mesh) in enumerate(meshes.items(), start=1):
                 material = materials[name] if name in materials else Material(color=mesh.color)
@@ -263,13 +289,15 @@ class Renderer:
                            DISTRACTOR_LABEL)
             return self._read(gl)
 
-    def _set_camera(self, gl: _GlState, K: np.ndarray, light: Light) -> None:
-        """Per-frame uniforms: projection from K and the light."""
+    def _set_camera(self, gl: _GlState, K: np.ndarray, light: Light, shading: Shading) -> None:
+        """Per-frame uniforms: projection from K, the light and the shading mode."""
         u = gl.uniforms
         u["u_proj"].write(projection_from_K(K, self.width, self.height, self.near, self.far).T.astype("f4").tobytes())
         u["u_light_dir"].value = tuple(map(float, light.direction_cam))
         u["u_light_color"].value = tuple(map(float, light.color))
         u["u_ambient"].value = tuple(map(float, light.ambient))
+        u["u_shading"].value = SHADINGS.index(shading.mode)
+        u["u_bands"].value = float(shading.bands)
 
     @staticmethod
     def _draw(gl: _GlState, vao: moderngl.VertexArray, T_cam_obj: np.ndarray, scale: np.ndarray,

@@ -1,14 +1,16 @@
-"""Domain randomization: draw one synthetic frame's scene (joints, camera pose, link materials, light,
+"""Domain randomization: draw one synthetic frame's scene (joints, camera pose, link materials, light, shading,
 distractor objects) from the ranges of a generator YAML. The robot base is the world frame (z up); metres.
-`sample_two_robot_scene` adds a second robot beside the first (config/generate/scene/second_robot.yaml)."""
+`sample_two_robot_scene` adds a second robot beside the first (config/generate/scene/second_robot.yaml).
+Optional appearance keys (`flat_colours`, `shading`) draw nothing from the rng when a YAML leaves them out."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from holo_pose_ros.data.render import Light, Material, Primitive
+from holo_pose_ros.data.render import Light, Material, Primitive, Shading
 from holo_pose_ros.geometry.camera import intrinsics_matrix, look_at
 
 
@@ -30,6 +32,7 @@ class FrameScene:
     light: Light
     distractors: list[Primitive]
     others: list[PlacedRobot] = field(default_factory=list)  # robots besides the first (none by default)
+    shading: Shading = Shading()  # how the frame is lit (Blinn-Phong unless appearance.shading says otherwise)
 
 
 def _uniform(rng: np.random.Generator, bounds) -> float:
@@ -78,6 +81,44 @@ def _random_material(cfg: dict, rng: np.random.Generator, base_colour: np.ndarra
         str(patterns[rng.integers(len(patterns))]), _uniform(rng, cfg["pattern_scale_m"]),
         _uniform(rng, cfg["specular"]), _uniform(rng, cfg["shininess"]),
     )
+
+
+def _flat_material(appearance: dict, flat: dict, rng: np.random.Generator) -> Material:
+    """An untextured material (plain pattern) of one random colour: a grey (probability flat.grey_probability) or
+    a hue uniform on the colour wheel; saturation and value (brightness, 0..1) from flat.saturation and
+    flat.value, specular terms from the appearance ranges."""
+    grey = rng.random() < flat["grey_probability"]
+    hue_deg = 0.0 if grey else rng.uniform(0.0, 360.0)
+    saturation = 0.0 if grey else _uniform(rng, flat["saturation"])
+    hsv = np.array([[[hue_deg, saturation, _uniform(rng, flat["value"])]]], np.float32)  # OpenCV float HSV
+    colour = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]
+    return Material(colour, colour, "plain", 0.05, _uniform(rng, appearance["specular"]),
+                    _uniform(rng, appearance["shininess"]))
+
+
+def _link_materials(appearance: dict, rng: np.random.Generator, link_colours: dict[str, np.ndarray]) -> dict[str, Material]:
+    """Every link's material for one frame: all the links' own colours (probability realistic_colour_probability),
+    else, with the optional `flat_colours` section and its probability, each link its own untextured colour,
+    else random colours and patterns."""
+    if rng.random() < appearance["realistic_colour_probability"]:
+        return {link: _random_material(appearance, rng, colour) for link, colour in link_colours.items()}
+    flat = appearance.get("flat_colours")
+    if flat is not None and rng.random() < flat["probability"]:
+        return {link: _flat_material(appearance, flat, rng) for link in link_colours}
+    return {link: _random_material(appearance, rng, None) for link in link_colours}
+
+
+def _random_shading(appearance: dict, rng: np.random.Generator) -> Shading:
+    """The frame's shading: Blinn-Phong without the optional `shading` list (no draw), else a pick from it
+    (weights `shading_probabilities`, default uniform); toon's band count uniform in `toon_bands` (integers)."""
+    modes = appearance.get("shading")
+    if modes is None:
+        return Shading()
+    mode = str(rng.choice(modes, p=appearance.get("shading_probabilities")))
+    if mode != "toon":
+        return Shading(mode)
+    low, high = appearance["toon_bands"]
+    return Shading(mode, int(rng.integers(low, high + 1)))
 
 
 def _random_light(cfg: dict, rng: np.random.Generator) -> Light:
@@ -133,7 +174,7 @@ def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarr
 def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, width: int, height: int,
                  link_colours: dict[str, np.ndarray], T_cam_base: np.ndarray | None = None) -> FrameScene:
     """Draw one frame: joints uniform within the URDF limits, then camera (unless `T_cam_base` fixes it),
-    materials, light and distractors. `model` is a float64 RobotModel; `link_colours` the meshes' own colours
+    materials, light, distractors and shading. `model` is a float64 RobotModel; `link_colours` the meshes' own colours
     (for the realistic look)."""
     import torch
 
@@ -146,14 +187,13 @@ def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, widt
     if T_cam_base is None:
         T_cam_base = sample_camera(cfg["camera"], rng, centre, radius, K, height)
     appearance = cfg["appearance"]
-    realistic = rng.random() < appearance["realistic_colour_probability"]
-    materials = {link: _random_material(appearance, rng, colour if realistic else None) for link, colour in link_colours.items()}
     return FrameScene(
         joints=q,
         T_cam_base=T_cam_base,
-        materials=materials,
+        materials=_link_materials(appearance, rng, link_colours),
         light=_random_light(cfg["lighting"], rng),
         distractors=_random_distractors(cfg["distractors"], appearance, rng, T_cam_base, keypoints, radius, K, width, height),
+        shading=_random_shading(appearance, rng),
     )
 
 
@@ -188,7 +228,7 @@ def sample_two_robot_scene(model, second, cfg: dict, placement: dict, rng: np.ra
     """One frame of two robots: joints of each uniform within its limits, the second beside the first
     (`place_beside`, gap and yaw drawn from `placement`), the camera framing both and looking across the line
     between them (azimuth within placement.camera.across_deg of its perpendicular, either side), so that neither
-    hides the other; then materials (both robots' links), light and distractors as `sample_scene`. The first
+    hides the other; then materials (both robots' links), light, distractors and shading as `sample_scene`. The first
     robot's base is the world frame; the second robot is scene.others[0]."""
     q1, origins1, kp1 = _pose_sample(model, rng)
     q2, origins2, kp2 = _pose_sample(second, rng)
@@ -206,9 +246,7 @@ def sample_two_robot_scene(model, second, cfg: dict, placement: dict, rng: np.ra
     camera["azimuth_deg"] = [azimuth, azimuth]
     T_cam_base = sample_camera(camera, rng, centre, radius, K, height)
     appearance = cfg["appearance"]
-    realistic = rng.random() < appearance["realistic_colour_probability"]
-    materials = {link: _random_material(appearance, rng, colour if realistic else None)
-                 for link, colour in {**link_colours, **second_colours}.items()}
+    materials = _link_materials(appearance, rng, {**link_colours, **second_colours})
     keypoints = np.concatenate([kp1, kp2 @ T_12[:3, :3].T + T_12[:3, 3]])
     return FrameScene(
         joints=q1,
@@ -218,4 +256,5 @@ def sample_two_robot_scene(model, second, cfg: dict, placement: dict, rng: np.ra
         distractors=_random_distractors(cfg["distractors"], appearance, rng, T_cam_base, keypoints, radius, K,
                                         width, height),
         others=[PlacedRobot(q2, T_cam_base @ T_12)],
+        shading=_random_shading(appearance, rng),
     )

@@ -97,7 +97,8 @@ class RenderedViews(torch.utils.data.Dataset):
         K_crop = crop_affine(box, S) @ K
         robot = {} if mode == "negative" else meshes
         poses = {name: scene.T_cam_base @ links[name][0].numpy() for name in robot}
-        result = renderer.render(poses, robot, K_crop, scene.materials, scene.light, scene.distractors)
+        result = renderer.render(poses, robot, K_crop, scene.materials, scene.light, scene.distractors,
+                                 scene.shading)
         background = random_background(rng, S, S, tuple(gen["background"]["layers"]),
                                        tuple(gen["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
