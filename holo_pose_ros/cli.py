@@ -73,14 +73,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                                      fit=args.fit)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     if args.ablation:
-        reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet)
+        reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet,
+                                   depth_diagnostics=args.depth_diagnostics is not False)
         print(format_ablation(reports))
         if args.out:
             write_report(reports, args.out)
             print(f"report: {args.out}")
         return 0
     report, results, images = evaluate_folder(estimator, reader, known_joints=args.known_joints, limit=args.limit,
-                                              progress=not args.quiet, keep_images=12 if args.plots else 0)
+                                              progress=not args.quiet, keep_images=12 if args.plots else 0,
+                                              depth_diagnostics=args.depth_diagnostics)
     print(format_report(report))
     if args.out:
         write_report(report, args.out)
@@ -247,6 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: the model card's validated choice)")
     e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
                                                          "lifter, fitted, and fitted with the true joints")
+    e.add_argument("--depth-diagnostics", action=argparse.BooleanOptionalAction, default=None,
+                   help="also fit each detection without the depth prior (untimed) and report signed root-depth "
+                        "errors of DepthNet, that fit and the shipped estimate, and the 2D keypoint scale about the "
+                        "true centroid (report key depth_diagnostics; default: on unless --tracking)")
     e.add_argument("--out", default=None, help="report.json path")
     e.add_argument("--plots", default=None, help="folder for the ADD curve and a grid of frames")
     e.add_argument("--limit", type=int, default=None, help="only the first N frames")

@@ -241,13 +241,14 @@ class Estimator:
     def estimate_detection(self, detection: Detection | None, K: np.ndarray, known_joints: np.ndarray | None = None,
                            methods: tuple[str, ...] = METHODS, tracked: bool = False,
                            timings: dict[str, float] | None = None, start: float | None = None,
-                           depth_prior_m: float | None = None) -> dict[str, Estimate]:
+                           depth_prior_m: float | None = None, depth_prior: bool | None = None) -> dict[str, Estimate]:
         """The estimates of one given detection (None: nothing detected), one per method; e.g. to compare fit
         settings on cached detections without re-running the network. `tracked` says the crop came from the
         previous frame (its pose is then one more start of the fit); `timings` and `start` (perf_counter seconds)
         carry the detection's timings into the estimates. `depth_prior_m` replaces the heads' depth in the fit's
-        depth prior (metres; e.g. the true depth, in an error-budget study). The tracked state follows the last
-        method asked for."""
+        depth prior (metres; e.g. the true depth, in an error-budget study); `depth_prior` (None: the estimator's)
+        switches that prior on or off for this call (e.g. the evaluation's fit without it). The tracked state
+        follows the last method asked for."""
         _check_methods(methods)
         K = np.asarray(K, dtype=np.float64)
         timings = {} if timings is None else timings
@@ -277,10 +278,11 @@ class Estimator:
             if tracked and previous is not None and previous.joints is not None:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
-            if depth_prior_m is None and self.depth_prior:
+            use_prior = self.depth_prior if depth_prior is None else depth_prior
+            if depth_prior_m is None and use_prior:
                 depth_prior_m = self.fitter.prior_depth(ff["joints"], ff["T_cam_base"])
             fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                     depth_prior_m if self.depth_prior else None)
+                                     depth_prior_m if use_prior else None)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3

@@ -9,15 +9,20 @@ import torch
 from holo_pose_ros.geometry.camera import in_image, project
 
 
+def fit_keypoints_px(robot, joints: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(M, 2) pixels of every fit keypoint of the robot at joints (J,) and base pose T_cam_base (4, 4), through K."""
+    with torch.no_grad():
+        q = torch.as_tensor(np.array(joints[None]), dtype=robot.dtype, device=robot.device)
+        T = torch.as_tensor(np.array(T_cam_base[None]), dtype=robot.dtype, device=robot.device)
+        points = robot.fit_keypoints_in_camera(q, T)[0].double().cpu().numpy()
+    return project(points, K)
+
+
 def ground_truth_fit_keypoints(robot, frame) -> np.ndarray | None:
     """(M, 2) pixels of every fit keypoint from a frame's true joints and base pose; None when it lacks them."""
     if frame.joints is None or frame.T_cam_base is None:
         return None
-    with torch.no_grad():
-        q = torch.as_tensor(np.array(frame.joints[None]), dtype=robot.dtype, device=robot.device)
-        T = torch.as_tensor(np.array(frame.T_cam_base[None]), dtype=robot.dtype, device=robot.device)
-        points = robot.fit_keypoints_in_camera(q, T)[0].double().cpu().numpy()
-    return project(points, frame.K)
+    return fit_keypoints_px(robot, frame.joints, frame.T_cam_base, frame.K)
 
 
 def keypoint_errors_px(detected: np.ndarray, gt: np.ndarray, width: int, height: int) -> np.ndarray:

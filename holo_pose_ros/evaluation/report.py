@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from holo_pose_ros.evaluation import metrics
+from holo_pose_ros.evaluation.depth import format_depth_diagnostics
 
 ADD_THRESHOLDS_MM = (10, 20, 40, 60)
 
@@ -167,7 +168,7 @@ def keypoint_error_lines(report: dict, estimate: bool = True) -> list[str]:
 
 
 def format_report(report: dict) -> str:
-    """A compact human-readable table of the report for the terminal."""
+    """A compact human-readable table of the report for the terminal (with its depth diagnostics, if any)."""
     joints = report["joint_error_deg"]
     units = joints["units"]
     below = "  ".join(f"<={k}mm {_num(v, 1)}%" for k, v in report["add_below_mm"].items())
@@ -195,4 +196,6 @@ def format_report(report: dict) -> str:
     lines.append("in-image kps  frames  not found  ADD AUC  ADD mean mm")
     lines += [f"{row['n_in_image']:>12}  {row['n_frames']:>6}  {row['n_not_found']:>9}  {_num(row['add_auc']):>7}  "
               f"{_num(row['add_mean_mm']):>11}" for row in report["truncation"]]
+    if report.get("depth_diagnostics"):
+        lines += format_depth_diagnostics(report["depth_diagnostics"])
     return "\n".join(lines)
