@@ -8,6 +8,7 @@ fraction of torch / pytorch-kinematics' per-call overhead. RobotModel stays the 
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,9 +57,12 @@ class KinematicTree:
 
     def __init__(self, parent: np.ndarray, C: np.ndarray, axis: np.ndarray, prismatic: np.ndarray,
                  source: np.ndarray, gain: np.ndarray, bias: np.ndarray, point_body: np.ndarray,
-                 point_local: np.ndarray, n_joints: int):
+                 point_local: np.ndarray, n_joints: int,
+                 link_frames: Mapping[str, tuple[int, np.ndarray]] | None = None):
         """Arrays as built by from_robot: per body (B,) parent / (B,4,4) C / (B,3) axis / (B,) prismatic,
-        source, gain, bias (entries of body 0 unused); per fit point (M,) body and (M,3) position in it (metres)."""
+        source, gain, bias (entries of body 0 unused); per fit point (M,) body and (M,3) position in it (metres);
+        link_frames: URDF link name -> (body, T_body<-link (4, 4)), for placing other points (with_link_points)."""
+        self.link_frames = dict(link_frames or {})
         self.parent, self.C, self.axis = parent, C, axis
         self.prismatic, self.source, self.gain, self.bias = prismatic, source, gain, bias
         self.point_body, self.point_local = point_body, point_local
@@ -161,7 +165,22 @@ class KinematicTree:
         point_local = np.array([(link_body[k.link][1] @ np.array([*k.xyz, 1.0]))[:3] for k in points],
                                float).reshape(-1, 3)
         return cls(np.array(parent, int), np.array(C), np.array(axis), np.array(prismatic, bool), np.array(source, int),
-                   np.array(gain, float), np.array(bias, float), point_body, point_local, robot.n_joints)
+                   np.array(gain, float), np.array(bias, float), point_body, point_local, robot.n_joints, link_body)
+
+    def with_link_points(self, link_points: Mapping[str, np.ndarray]) -> "KinematicTree":
+        """The same bodies carrying other points instead of the fit keypoints (e.g. the silhouette's surface points):
+        link name -> (N_l, 3) positions in that URDF link's frame, metres, concatenated in the mapping's order."""
+        unknown = [name for name in link_points if name not in self.link_frames]
+        if unknown:
+            raise ValueError(f"links {unknown} are not in the kinematic tree")
+        body, local = [], []
+        for name, points in link_points.items():
+            b, T = self.link_frames[name]
+            points = np.asarray(points, float).reshape(-1, 3)
+            body.append(np.full(len(points), b, int))
+            local.append(points @ T[:3, :3].T + T[:3, 3])
+        return KinematicTree(self.parent, self.C, self.axis, self.prismatic, self.source, self.gain, self.bias,
+                             np.concatenate(body), np.concatenate(local), self.n_joints, self.link_frames)
 
     # -- kinematics -----------------------------------------------------------------------------------------
     def body_poses(self, q: np.ndarray) -> np.ndarray:
@@ -187,10 +206,20 @@ class KinematicTree:
         X = T[:, :, :3, :] @ self._local_h                                     # (S, B, 3, M)
         return X[:, self.point_body, :, self._point_index].transpose(1, 0, 2)
 
+    def directions(self, T: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """(S, M, 3) vectors fixed in the points' bodies, local (M, 3) there, in the base frame at body poses T
+        (S, B, 4, 4) (body_poses), e.g. surface normals."""
+        X = T[:, :, :3, :3] @ np.asarray(local, float).T                     # (S, B, 3, M), as _apply
+        return X[:, self.point_body, :, self._point_index].transpose(1, 0, 2)
+
     def points_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fit keypoints P (S, M, 3) in the base frame (metres) and dP/dq (S, M, 3, J): for each q-driven joint
         moving a point, gain * axis x (P - joint origin) (revolute) or gain * axis (prismatic)."""
-        T = self.body_poses(q)
+        return self.points_and_jacobian_at(self.body_poses(q))
+
+    def points_and_jacobian_at(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """points_and_jacobian from body poses T (S, B, 4, 4) already computed (body_poses), e.g. shared with
+        directions."""
         P = self._apply(T)
         S, B, M = len(P), self.n_bodies, self.n_points
         Rw, o = T[:, :, :3, :3], T[:, :, :3, 3:]                              # (S, B, 3, 3), (S, B, 3, 1)

@@ -6,7 +6,15 @@ Objective per start: F = sum_i w_i rho(|r_i|^2) + W * prior_weight * sum_j ((q_j
 reprojection residual of fit point i (px), w_i its weight, W = sum_i w_i and rho the robust loss; with a depth prior
 z0 also + W * depth_prior_weight * ((z - z0) / depth_prior_sigma_m)^2, z the camera depth of the root keypoint or the
 mean of all fit points (depth_prior_on; 2D points fix the depth only through the robot's apparent size, which
-biased 2D detections get wrong). Reported costs are the data term per unit weight (px^2), without the priors.
+biased 2D detections get wrong). With a silhouette (a foreground mask, fitting/silhouette.py) and the robot's surface
+points (meshes at construction) also + sum_i [silhouette_weight rho_s(d_i^2) where d_i > 0 (pull-in) + contour_weight
+c_i rho_s(max(d_i, -contour_gate_px)^2) (contour)] + w_k sum_j rho_s(e_j^2) (chamfer), d_i the signed distance of
+surface point i to the mask's outline, c_i its contour weight, e_j the chamfer residual of outline point j, rho_s the
+robust loss at silhouette_robust_scale_px (the priors keep W, the keypoints' weight). The chamfer's weight w_k starts
+at chamfer_weight and halves each iteration down to chamfer_weight_final: strong, it pulls a robot seen too small or
+beside the mask out onto it, where pull-in alone would shrink it into the mask; weak, it no longer biases the result
+outward (the nearest surface point lies a little inside the outline). Reported costs are the data terms per unit
+weight (px^2; the silhouette's weight counts every residual, the chamfer's at its final weight), without the priors.
 Pose increments: see fitting/residuals.py.
 
 Coarse to fine over the tree: the first iterations see only the points at most d q-driven joints from the base
@@ -17,6 +25,7 @@ the distal ones keeps the distal joints from absorbing their errors: from 30-deg
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -26,19 +35,28 @@ from holo_pose_ros.fitting.kinematic_tree import KinematicTree
 from holo_pose_ros.fitting.residuals import (
     ROBUST_LOSSES,
     mean_depth_and_jacobian,
+    project,
     reprojection_residuals,
     reprojection_residuals_and_jacobian,
     robust_weights,
     so3_exp,
+    transform_points,
 )
+from holo_pose_ros.fitting.silhouette import (
+    Silhouette,
+    chamfer_residuals,
+    contour_weights,
+    signed_distance_residuals,
+)
+from holo_pose_ros.fitting.surface import TriangleMesh, sample_surface_points
 from holo_pose_ros.resources import config_with_overrides
 from holo_pose_ros.robots.kinematics import RobotModel
 
 
 @dataclass
 class FitResult:
-    """The winning start's fit. Costs are robust reprojection costs per unit weight (px^2), inf when the fit was not
-    run (fewer than min_points usable points)."""
+    """The winning start's fit. Costs are robust data costs per unit weight (px^2; keypoints, plus the silhouette
+    terms when fitted to one), inf when the fit was not run (fewer than min_points usable points, no silhouette)."""
 
     q: np.ndarray             # (J,) joints, radians / metres, YAML order, within the URDF limits
     T_cam_base: np.ndarray    # (4, 4) robot base pose in the camera frame (OpenCV), metres
@@ -48,6 +66,8 @@ class FitResult:
     costs: np.ndarray         # (S,) final cost of every start, px^2
     iterations: int           # LM iterations run (chain-growing stages included)
     n_points: int             # usable points (weight >= min_confidence)
+    silhouette_cost: float | None = None   # the winner's silhouette terms per unit of their weight, px^2 (None: no
+                                           # silhouette)
 
 
 def load_fitting_config(config: dict | str | Path | None = None) -> dict:
@@ -61,11 +81,11 @@ def load_fitting_config(config: dict | str | Path | None = None) -> dict:
 
 def normal_equations(r: np.ndarray, jac: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """IRLS Gauss-Newton normal matrix H = sum_i omega_i J_i^T J_i (S, P, P) and gradient g = sum_i omega_i J_i^T r_i
-    (S, P) from residuals r (S, M, 2), their Jacobian (S, M, 2, P) and per-point weights omega (S, M)."""
-    S, M, _, n = jac.shape
-    J2 = jac.reshape(S, 2 * M, n)
-    JwT = np.swapaxes((jac * omega[..., None, None]).reshape(S, 2 * M, n), 1, 2)   # (S, P, 2M)
-    return JwT @ J2, (JwT @ r.reshape(S, 2 * M, 1))[..., 0]
+    (S, P) from residuals r (S, M, d), their Jacobian (S, M, d, P) and per-point weights omega (S, M)."""
+    S, M, d, n = jac.shape
+    J2 = jac.reshape(S, d * M, n)
+    JwT = np.swapaxes((jac * omega[..., None, None]).reshape(S, d * M, n), 1, 2)   # (S, P, dM)
+    return JwT @ J2, (JwT @ r.reshape(S, d * M, 1))[..., 0]
 
 
 def damped_step(H: np.ndarray, g: np.ndarray, damping: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
@@ -96,7 +116,9 @@ def _project_rotation(R: np.ndarray) -> np.ndarray:
 class _State:
     """Every start's parameters (q (S, J), R (S, 3, 3), t (S, 3)) and per-point terms there: residuals r (S, M, 2)
     px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M); the mean
-    camera depth z (S,) of the depth prior's points, metres, and its Jacobian jz (S, P)."""
+    camera depth z (S,) of the depth prior's points, metres, and its Jacobian jz (S, P); with a silhouette the
+    weighted robust cost (S,) px^2 and normal equations (S, P, P), (S, P) of its pull-in and contour terms (sil_F,
+    sil_H, sil_g) and of its chamfer term at unit weight (ch_F, ch_H, ch_g), else None."""
 
     q: np.ndarray
     R: np.ndarray
@@ -108,6 +130,12 @@ class _State:
     drho: np.ndarray
     z: np.ndarray
     jz: np.ndarray
+    sil_F: np.ndarray | None = None
+    sil_H: np.ndarray | None = None
+    sil_g: np.ndarray | None = None
+    ch_F: np.ndarray | None = None
+    ch_H: np.ndarray | None = None
+    ch_g: np.ndarray | None = None
 
     def where(self, take: np.ndarray, other: "_State") -> "_State":
         """Per start: `other`'s values where take (S,) is True, else this state's."""
@@ -115,18 +143,29 @@ class _State:
             return other
         if not take.any():
             return self
-        return _State(*(np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+        return _State(*(a if a is None else np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
                         for a, b in ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self))))
 
 
 class Fitter:
-    """Fits one robot's joints and base pose to 2D fit keypoints; build once, call fit() per frame."""
+    """Fits one robot's joints and base pose to 2D fit keypoints (and optionally a silhouette); build once, call fit()
+    per frame."""
 
-    def __init__(self, robot: RobotModel, config: dict | str | Path | None = None):
-        """`robot` gives the kinematics and joint limits; `config` overrides config/fitting.yaml."""
+    def __init__(self, robot: RobotModel, config: dict | str | Path | None = None,
+                 meshes: Mapping[str, TriangleMesh] | None = None):
+        """`robot` gives the kinematics and joint limits; `config` overrides config/fitting.yaml. `meshes` (URDF link
+        name -> vertices (V, 3) m, unit vertex normals (V, 3) and faces (F, 3) in the link frame, e.g. data/meshes.py's
+        load_link_meshes) give the surface points (config surface_points of them) that a silhouette is fitted with."""
         self.robot = robot
         self.config = load_fitting_config(config)
         self.tree = KinematicTree.from_robot(robot)
+        self.surface_tree, self.surface_normals = None, None
+        if meshes is not None:
+            surface = sample_surface_points(meshes, int(self.config["surface_points"]))
+            self.surface_tree = self.tree.with_link_points({name: p for name, (p, _) in surface.items()})
+            # (N, 3) unit normals in the points' body frames
+            self.surface_normals = np.concatenate([n @ self.tree.link_frames[name][1][:3, :3].T
+                                                   for name, (_, n) in surface.items()])
         self.lower = robot.lower.detach().cpu().double().numpy()
         self.upper = robot.upper.detach().cpu().double().numpy()
         sigma = np.array([self.config["prior_sigma_m"] if t == "prismatic" else self.config["prior_sigma_rad"]
@@ -140,6 +179,12 @@ class Fitter:
         self.depth_points = np.array([robot.root_index]) if on == "root" else np.arange(self.tree.n_points)
 
     # -- inputs ---------------------------------------------------------------------------------------------
+    def silhouette(self, mask: np.ndarray) -> Silhouette:
+        """The fit evidence of a robot-foreground mask (H, W) bool in frame pixels, with the config's outline budget
+        (silhouette_boundary_points) and window margin (silhouette_margin_px)."""
+        cfg = self.config
+        return Silhouette(mask, int(cfg["silhouette_boundary_points"]), int(cfg["silhouette_margin_px"]))
+
     def _observations(self, uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """uv (M, 2) px and weights (M,) checked; non-finite or low-confidence points get weight 0."""
         M = self.tree.n_points
@@ -177,14 +222,22 @@ class Fitter:
 
     # -- cost -----------------------------------------------------------------------------------------------
     def cost(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q: np.ndarray,
-             T_cam_base: np.ndarray) -> np.ndarray:
+             T_cam_base: np.ndarray, silhouette: Silhouette | None = None) -> np.ndarray:
         """(S,) robust reprojection cost per unit weight (px^2, no prior) of given poses q (S, J), T_cam<-base
-        (S, 4, 4), e.g. to compare feed-forward estimates with a fit; inf where no point is usable."""
+        (S, 4, 4), e.g. to compare feed-forward estimates with a fit; with a silhouette, its terms too (as fit
+        weighs them); inf where no point is usable."""
         uv, w = self._observations(uv, weights)
         q = np.asarray(q, float).reshape(-1, self.tree.n_joints)
         T = np.asarray(T_cam_base, float).reshape(-1, 4, 4)
-        F_data, _ = self._data_terms(uv, w, np.asarray(K, float), q, T[:, :3, :3], T[:, :3, 3])
+        K, R, t = np.asarray(K, float), T[:, :3, :3], T[:, :3, 3]
+        F_data, _ = self._data_terms(uv, w, K, q, R, t)
         W = w.sum()
+        if silhouette is not None:
+            self._require_surface()
+            normals = self.surface_tree.directions(self.surface_tree.body_poses(q), self.surface_normals)
+            terms = self._silhouette_terms(silhouette, K, self.surface_tree.points(q), normals, None, R, t, False)
+            F_data = F_data + terms[0] + self.config["chamfer_weight_final"] * terms[3]
+            W += self._silhouette_weight(silhouette)
         return F_data / W if W > 0 else np.full(len(q), np.inf)
 
     def _data_terms(self, uv: np.ndarray, w: np.ndarray, K: np.ndarray, q: np.ndarray, R: np.ndarray,
@@ -195,13 +248,58 @@ class Fitter:
         rho, _ = robust_weights(s, self.config["robust_loss"], self.config["robust_scale_px"])
         return rho @ w, s @ w
 
+    def _require_surface(self) -> None:
+        """An error when the Fitter was built without meshes, so has no surface points to fit a silhouette with."""
+        if self.surface_tree is None:
+            raise ValueError("fitting a silhouette needs the robot's surface points: build the Fitter with meshes")
+
+    def _silhouette_weight(self, silhouette: Silhouette) -> float:
+        """The silhouette terms' weight if every residual were active, (silhouette_weight + contour_weight) per surface
+        point + chamfer_weight_final per outline point: the unit of their reported cost."""
+        cfg = self.config
+        return ((cfg["silhouette_weight"] + cfg["contour_weight"]) * self.surface_tree.n_points
+                + cfg["chamfer_weight_final"] * len(silhouette.boundary))
+
+    def _silhouette_terms(self, silhouette: Silhouette, K: np.ndarray, P: np.ndarray, normals: np.ndarray,
+                          dP: np.ndarray | None, R: np.ndarray, t: np.ndarray, derivatives: bool = True
+                          ) -> tuple[np.ndarray, ...]:
+        """Weighted robust cost (S,) px^2 of the pull-in and contour residuals (fitting/silhouette.py) of surface
+        points P (S, N, 3) with unit normals (S, N, 3) (base frame, metres) through poses (R, t) and K, and with
+        derivatives their normal equations H (S, P, P), g (S, P) wrt (dq, dphi, dt) (dP (S, N, 3, J) from the tree,
+        None for a pose-only fit; else None, None); then the same three for the chamfer residuals at unit weight."""
+        cfg = self.config
+        loss, scale, gate = cfg["robust_loss"], cfg["silhouette_robust_scale_px"], cfg["contour_gate_px"]
+        X = transform_points(P, R, t)
+        if derivatives:
+            uv, duv = reprojection_residuals_and_jacobian(P, dP, R, t, K, np.zeros(2), cfg["min_depth_m"])
+        else:
+            uv, duv = project(X, K, cfg["min_depth_m"]), None
+        # pull-in and contour share the signed distance d: pull-in where d > 0, contour on contour-generator points
+        # with d capped at -gate inside (an interior contour costs a constant, with no pull)
+        d, jac = signed_distance_residuals(uv, duv, silhouette)
+        d = d[..., 0]
+        contour = cfg["contour_weight"] * contour_weights(normals @ np.swapaxes(R, 1, 2), X, cfg["contour_max_cosine"])
+        pull = cfg["silhouette_weight"] * (d > 0.0)
+        rho, drho = robust_weights(d * d, loss, scale)
+        rho_capped, _ = robust_weights(np.maximum(d, -gate) ** 2, loss, scale)
+        F = np.sum(pull * rho + contour * rho_capped, axis=-1)
+        r, jac_ch = chamfer_residuals(uv, duv, silhouette.boundary, silhouette.normals)
+        rho_ch, drho_ch = robust_weights(r[..., 0] ** 2, loss, scale)
+        if not derivatives:
+            return F, None, None, rho_ch.sum(axis=-1), None, None
+        return (F, *normal_equations(d[..., None], jac, drho * (pull + contour * (d > -gate))),
+                rho_ch.sum(axis=-1), *normal_equations(r, jac_ch, drho_ch))
+
     # -- fit ------------------------------------------------------------------------------------------------
     def fit(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q0: np.ndarray, T0: np.ndarray,
-            known_joints: np.ndarray | None = None, depth_prior_m: float | None = None) -> FitResult:
+            known_joints: np.ndarray | None = None, depth_prior_m: float | None = None,
+            silhouette: Silhouette | None = None) -> FitResult:
         """Fit to fit keypoints uv (M, 2) px with weights (M,) >= 0 seen through K (3, 3), from starts q0 (S, J)
         and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
         depth_prior_m, the depth of `depth_points` (config depth_prior_on: the root keypoint or all fit points) is
-        pulled towards it (metres; e.g. a depth network's)."""
+        pulled towards it (metres; e.g. a depth network's). With a silhouette (Fitter.silhouette(mask); needs meshes
+        at construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
+        and the fit runs even without usable keypoints."""
         cfg = self.config
         uv, w = self._observations(uv, weights)
         K = np.asarray(K, float)
@@ -210,12 +308,20 @@ class Fitter:
         W = float(w.sum())
         n_points = int(np.count_nonzero(w))
         pose_only = known_joints is not None
+        if silhouette is not None:
+            self._require_surface()
+        W_sil = 0.0 if silhouette is None else self._silhouette_weight(silhouette)
+        W_all = W + W_sil                                           # the unit of the reported cost
         if pose_only:
             q_known = np.asarray(known_joints, float).reshape(J)
             q = np.repeat(q_known[None], S, axis=0)
             P_known = np.repeat(self.tree.points(q_known[None]), S, axis=0)
+            if silhouette is not None:
+                T_bodies = self.surface_tree.body_poses(q_known[None])
+                normals_known = np.repeat(self.surface_tree.directions(T_bodies, self.surface_normals), S, axis=0)
+                P_surface_known = np.repeat(self.surface_tree.points(q_known[None]), S, axis=0)
 
-        if n_points < cfg["min_points"]:
+        if n_points < cfg["min_points"] and silhouette is None:
             F_data, sq = self._data_terms(uv, w, K, q, R, t)
             best = int(np.argmin(F_data))
             return FitResult(q[best].copy(), self._matrices(R, t)[best], float("inf"),
@@ -230,8 +336,28 @@ class Fitter:
             sq = np.sum(r * r, axis=-1)
             rho, drho = robust_weights(sq, loss, scale)
             k = self.depth_points
+            sil = ()
+            if silhouette is not None:
+                if pose_only:
+                    Ps, Ns, dPs = P_surface_known, normals_known, None
+                else:
+                    T_bodies = self.surface_tree.body_poses(q)
+                    Ns = self.surface_tree.directions(T_bodies, self.surface_normals)
+                    Ps, dPs = self.surface_tree.points_and_jacobian_at(T_bodies)
+                sil = self._silhouette_terms(silhouette, K, Ps, Ns, dPs, R, t)
             return _State(q, R, t, r, jac, sq, rho, drho,
-                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t))
+                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t), *sil)
+
+        def data_cost(state: _State) -> np.ndarray:
+            """(S,) the keypoints' robust cost at all weights plus the silhouette terms (the chamfer at its final
+            weight), px^2."""
+            if state.sil_F is None:
+                return state.rho @ w
+            return state.rho @ w + state.sil_F + cfg["chamfer_weight_final"] * state.ch_F
+
+        def chamfer_weight(k: int) -> float:
+            """The chamfer's weight at iteration k: chamfer_weight halved each iteration, down to the final."""
+            return max(float(cfg["chamfer_weight_final"]), float(cfg["chamfer_weight"]) * 0.5 ** (k - 1))
 
         q_start = q.copy()
         prior = self._prior_precision * W                                      # (J,) per unit of (q - q0)^2
@@ -255,6 +381,11 @@ class Fitter:
             wk = w if final else stages[iterations - 1]
             H, g = normal_equations(state.r, state.jac, wk * state.drho)
             F = state.rho @ wk + prior_cost(state)
+            if silhouette is not None:
+                wc = chamfer_weight(iterations)
+                H += state.sil_H + wc * state.ch_H
+                g += state.sil_g + wc * state.ch_g
+                F += state.sil_F + wc * state.ch_F
             if depth_prior_m is not None:
                 H += depth_precision * state.jz[:, :, None] * state.jz[:, None, :]
                 g += depth_precision * state.jz * (state.z - depth_prior_m)[:, None]
@@ -271,10 +402,12 @@ class Fitter:
             q_c = state.q if pose_only else np.clip(state.q + dx[:, :J], self.lower, self.upper)
             cand = linearize(q_c, state.R @ so3_exp(dx[:, nq:nq + 3]), state.t + dx[:, nq + 3:])
             F_c = cand.rho @ wk + prior_cost(cand)
+            if silhouette is not None:
+                F_c += cand.sil_F + wc * cand.ch_F
             accept = F_c < F                                                   # False for NaN
-            if final:
+            if final and (silhouette is None or wc == cfg["chamfer_weight_final"]):
                 converged |= accept & (((F - F_c) < cfg["relative_tolerance"] * F)
-                                       | (cand.rho @ w < cfg["absolute_tolerance_px2"] * W))
+                                       | (data_cost(cand) < cfg["absolute_tolerance_px2"] * W_all))
                 converged |= ~accept & (damping >= cfg["damping_max"])
             state = state.where(accept, cand)
             damping = np.clip(damping * np.where(accept, cfg["damping_down"], cfg["damping_up"]),
@@ -284,11 +417,13 @@ class Fitter:
 
         # the coarse-to-fine stages descend on subsets of the points: a start may end above where it began on all of
         # them (seen on real detections); never return worse than the start itself
-        state = state.where((state.rho @ w) > (start_state.rho @ w), start_state)
-        costs = (state.rho @ w) / W
+        state = state.where(data_cost(state) > data_cost(start_state), start_state)
+        costs = data_cost(state) / W_all
         best = int(np.argmin(costs))
+        silhouette_cost = None if silhouette is None else float((data_cost(state) - state.rho @ w)[best] / W_sil)
         return FitResult(state.q[best].copy(), self._matrices(state.R, state.t)[best], float(costs[best]),
-                         self._rms(state.sq[best] @ w / W, W), best, costs, iterations, n_points)
+                         self._rms(state.sq[best] @ w / max(W, 1e-300), W), best, costs, iterations, n_points,
+                         silhouette_cost)
 
     def prior_depth(self, q: np.ndarray, T_cam_base: np.ndarray) -> float:
         """The depth (metres) that the depth prior holds, at joints q (J,) and pose T_cam_base (4, 4): the mean
