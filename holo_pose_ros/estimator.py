@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from holo_pose_ros.geometry.camera import project
-from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box
+from holo_pose_ros.geometry.crop import (CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box,
+                                         grid_to_frame_mask)
 from holo_pose_ros.model.network import HolisticNet, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -57,6 +58,7 @@ class Detection:
     confidence: np.ndarray               # (M,) heatmap confidence, [0, 1]
     out: dict                            # the crop pass's raw network output (batch of 1)
     K_crop: np.ndarray                   # (3, 3) intrinsics of the crop
+    mask: np.ndarray | None = None       # (H, W) bool robot foreground in image pixels (networks with segmentation)
 
 
 class Estimator:
@@ -73,13 +75,15 @@ class Estimator:
     confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
     extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
     below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
-    nothing."""
+    nothing. With `silhouette` (default: when the network predicts a robot mask), the fit also pulls the robot's
+    projected surface into the predicted mask and its outline onto the mask's (fitting/silhouette.py): a depth cue
+    that survives a change of look."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
-                 depth_prior: bool = True):
+                 depth_prior: bool = True, silhouette: bool | None = None):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -94,7 +98,16 @@ class Estimator:
         self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
-        self.fitter = Fitter(RobotModel(robot.spec, dtype=torch.float64), fit_config)
+        self.silhouette = bool(net.cfg.segmentation) if silhouette is None else silhouette
+        if self.silhouette and not net.cfg.segmentation:
+            raise ValueError(f"silhouette: the network '{net.cfg.name}' predicts no robot mask (segmentation: false)")
+        fit_robot = RobotModel(robot.spec, dtype=torch.float64)
+        meshes = None
+        if self.silhouette:
+            from holo_pose_ros.data.meshes import load_link_meshes
+
+            meshes = load_link_meshes(fit_robot)
+        self.fitter = Fitter(fit_robot, fit_config, meshes=meshes)
         self._previous: Estimate | None = None
         self._previous_hint: np.ndarray | None = None  # (N, 2) pixels: the previous estimate's DREAM keypoints
 
@@ -203,8 +216,13 @@ class Estimator:
             uv = np.concatenate([uv, np.zeros((M - len(uv), 2))])
             confidence = np.zeros(M)
             confidence[:self.robot.n_keypoints] = out["keypoint_confidence"][0].double().cpu().numpy()
+        mask = None
+        if "mask_logits" in out:
+            t0 = time.perf_counter()
+            mask = grid_to_frame_mask(out["mask_logits"][0, 0].float().cpu().numpy(), box, self.size, W, H)
+            timings["mask"] = (time.perf_counter() - t0) * 1e3
         return Detection(float(torch.sigmoid(out["presence_logit"][0])), box, uv, confidence, out,
-                         crop_affine(box, self.size) @ K)
+                         crop_affine(box, self.size) @ K, mask)
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
@@ -281,8 +299,11 @@ class Estimator:
             use_prior = self.depth_prior if depth_prior is None else depth_prior
             if depth_prior_m is None and use_prior:
                 depth_prior_m = self.fitter.prior_depth(ff["joints"], ff["T_cam_base"])
+            silhouette = None
+            if self.silhouette and detection.mask is not None and detection.mask.any():
+                silhouette = self.fitter.silhouette(detection.mask)
             fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                     depth_prior_m if use_prior else None)
+                                     depth_prior_m if use_prior else None, silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3

@@ -4,7 +4,8 @@ import numpy as np
 import torch
 
 from holo_pose_ros.geometry.camera import look_at, project
-from holo_pose_ros.geometry.crop import box_from_points, crop_affine, crop_image, crop_intrinsics, full_image_box
+from holo_pose_ros.geometry.crop import (box_from_points, crop_affine, crop_image, crop_intrinsics, full_image_box,
+                                         grid_to_frame_mask)
 from holo_pose_ros.geometry.rotation import geodesic_angle, matrix_to_rot6d, rot6d_to_matrix
 
 
@@ -62,3 +63,17 @@ def test_box_from_points_and_letterbox():
     assert np.isclose(box[2], 200.0 * 1.5)
     assert np.allclose(box[:2] + box[2] / 2, [200.5, 230.5])  # centre, in edge coordinates
     assert np.allclose(full_image_box(640, 480), [0.0, -80.0, 640.0])
+
+
+def test_a_crop_grid_mask_lands_on_its_frame_pixels():
+    """One positive cell of a 56 x 56 grid over a 224 px crop of the box (100, 50, side 448): 8 x 8 frame pixels
+    centred where the cell's centre maps (crop pixel (j + 0.5) * 4 - 0.5, then back through the crop affine)."""
+    logits = np.full((56, 56), -5.0)
+    logits[10, 20] = 5.0
+    box = np.array([100.0, 50.0, 448.0])
+    mask = grid_to_frame_mask(logits, box, 224, 640, 480)
+    rows, cols = np.nonzero(mask)
+    centre = np.linalg.inv(crop_affine(box, 224)) @ np.array([(20 + 0.5) * 4 - 0.5, (10 + 0.5) * 4 - 0.5, 1.0])
+    assert abs(cols.mean() - centre[0]) < 0.5 and abs(rows.mean() - centre[1]) < 0.5
+    assert 40 <= mask.sum() <= 90                        # about one cell: (4 crop px * 2 frame px per crop px)^2
+    assert not grid_to_frame_mask(np.full((56, 56), -5.0), box, 224, 640, 480).any()

@@ -204,5 +204,29 @@ def test_the_pyramid_head_gives_every_output_at_its_stride_and_learns_the_mask(r
     assert history[-1]["fit_coord"] < history[0]["fit_coord"], history
     with pytest.raises(ValueError, match="stride 4"):
         HolisticNet(load_model_config({**PYRAMID_SMALL, "heatmap_size": 8}), robot)
-    with pytest.raises(ValueError, match="head: pyramid"):
-        HolisticNet(load_model_config({**SMALL, "segmentation": True}), robot)
+
+
+def test_a_network_with_a_mask_gives_the_fit_its_silhouette(robot):
+    """A segmentation network's estimator builds its fitter with the robot's surface, its detections carry the
+    mask in image pixels (foreground inside the crop, none outside it), and the silhouette changes the fit;
+    asking a network without a mask for a silhouette is an error."""
+    torch.manual_seed(0)
+    net = HolisticNet(load_model_config({**SMALL, "segmentation": True}), robot).eval()
+    torch.nn.init.zeros_(net.keypoint_head.mask_out.weight)
+    torch.nn.init.constant_(net.keypoint_head.mask_out.bias, 3.0)     # every crop pixel is robot
+    image = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    K_img = np.array([[150.0, 0, 80], [0, 150.0, 60], [0, 0, 1]])
+    with_mask = Estimator(net, robot, min_confidence=0.0, fit=True)
+    assert with_mask.silhouette
+    detection = with_mask.detect(image, K_img)
+    x0, y0, side = detection.box
+    assert detection.mask.shape == (120, 160) and detection.mask.any()
+    rows, cols = np.nonzero(detection.mask)
+    assert cols.min() >= x0 - 1 and cols.max() <= x0 + side + 1 and rows.min() >= y0 - 1 and rows.max() <= y0 + side + 1
+    fitted = with_mask.estimate_detection(detection, K_img, methods=("fitted",))["fitted"]
+    plain = Estimator(net, robot, min_confidence=0.0, fit=True, silhouette=False)
+    unmasked = plain.estimate_detection(detection, K_img, methods=("fitted",))["fitted"]
+    assert np.isfinite(fitted.T_cam_base).all()
+    assert not np.allclose(fitted.T_cam_base, unmasked.T_cam_base)
+    with pytest.raises(ValueError, match="no robot mask"):
+        Estimator(HolisticNet(load_model_config(SMALL), robot).eval(), robot, silhouette=True)

@@ -62,3 +62,21 @@ def crop_box_from_keypoints(uv: np.ndarray, width: int, height: int, margin: flo
     inside = in_image(uv, width, height)
     pts = uv[inside] if inside.sum() >= 2 else np.clip(uv, [0, 0], [width, height])
     return box_from_points(pts, margin)
+
+
+def grid_to_frame_mask(logits: np.ndarray, box: np.ndarray, size: int, width: int, height: int) -> np.ndarray:
+    """(height, width) bool frame mask of a crop's (G, G) foreground logits: cell j is centred on crop pixel
+    (j + 0.5) size / G - 0.5, the crop on `box` (x0, y0, side) of the frame; logits are interpolated bilinearly
+    and thresholded at 0 (probability 0.5). Frame pixels outside the crop are background."""
+    G = logits.shape[-1]
+    cell = size / G
+    grid_to_crop = np.array([[cell, 0.0, 0.5 * cell - 0.5], [0.0, cell, 0.5 * cell - 0.5], [0.0, 0.0, 1.0]])
+    frame_to_grid = np.linalg.inv(np.linalg.inv(crop_affine(box, size)) @ grid_to_crop)[:2]
+    warped = cv2.warpAffine(np.ascontiguousarray(logits, np.float32), frame_to_grid, (width, height),
+                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
+                            borderValue=-1.0)
+    x0, y0, side = (float(v) for v in box)
+    cols, rows = np.arange(width), np.arange(height)
+    in_box = ((rows[:, None] >= y0 - 0.5) & (rows[:, None] <= y0 + side - 0.5)
+              & (cols[None] >= x0 - 0.5) & (cols[None] <= x0 + side - 0.5))
+    return (warped > 0.0) & in_box

@@ -42,14 +42,15 @@ class KeypointHead(nn.Module):
     """KeypointNet: deconvolutions to an N x D x H x W volume per image, softmax over each keypoint's volume,
     and soft-argmax -> (u, v) in crop pixels and root-relative depth dz in metres. With `n_fit` > 0, a second
     1x1 convolution of the same deconvolved features gives 2D heatmaps (H x W logits) of the robot's fit
-    keypoints, decoded to sub-pixel positions and confidences (model/heatmaps.py). With `skip_channels` (the
+    keypoints, decoded to sub-pixel positions and confidences (model/heatmaps.py); with `segmentation`, a third
+    gives the robot-foreground mask's logits (mask_logits, B x 1 x H x W). With `skip_channels` (the
 backbone's maps at strides 16, 8, 4), each deconvolution's output gains a 1x1 projection of the map of its
 resolution (skip connections, a small FPN: finer evidence than the 6 x 6 stride-32 map). The projections start
 at zero, so a network warm-started without them computes the same function at first."""
 
     def __init__(self, channels: int, n_keypoints: int, crop_size: int, size: int = 64, depth_bins: int = 64,
                  deconv_channels: int = 256, depth_range_m: float = 1.3, n_fit: int = 0,
-                 skip_channels: tuple[int, ...] = ()):
+                 skip_channels: tuple[int, ...] = (), segmentation: bool = False):
         super().__init__()
         layers, cin, res = [], channels, crop_size // 32
         while res < size:
@@ -64,6 +65,7 @@ at zero, so a network warm-started without them computes the same function at fi
             nn.init.zeros_(conv.bias)
         self.out = nn.Conv2d(cin, n_keypoints * depth_bins, 1)
         self.fit_out = nn.Conv2d(cin, n_fit, 1) if n_fit else None
+        self.mask_out = nn.Conv2d(cin, 1, 1) if segmentation else None
         self.n, self.d, self.size, self.crop_size, self.depth_range = n_keypoints, depth_bins, size, crop_size, depth_range_m
 
     def forward(self, features: torch.Tensor, skips: list[torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
@@ -84,6 +86,8 @@ at zero, so a network warm-started without them computes the same function at fi
             out["heatmap_logits"] = heatmaps
             if not self.training:  # the loss reads the logits; decoding costs ~4 % of a CPU training step
                 out["fit_uv"], out["fit_confidence"] = decode_heatmaps(heatmaps, self.crop_size)
+        if self.mask_out is not None:
+            out["mask_logits"] = self.mask_out(deconvolved)
         return out
 
 

@@ -39,7 +39,7 @@ class ModelConfig:
     skip_connections: bool = False  # the keypoint head also sees the backbone's stride-16/8/4 maps (older: no)
     head: str = "deconv"            # deconv: KeypointHead (the paper's deconvolutions) | pyramid: PyramidHead (FPN-lite)
     head_channels: int = 96         # width of the pyramid head's levels
-    segmentation: bool = False      # the pyramid head also predicts the robot-foreground mask (stride 4)
+    segmentation: bool = False      # the keypoint head also predicts the robot-foreground mask (heatmap resolution)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -72,6 +72,7 @@ class HolisticNet(nn.Module):
         spec = robot.spec
         self.cfg = cfg
         self.root_index = robot.root_index
+        self.robot_name = robot.name
         self.reference_side_m = spec.constants.get("reference_box_side_m", 1.0)
         self.backbone = build_backbone(cfg.backbone, cfg.pretrained)
         info = self.backbone.info
@@ -91,11 +92,9 @@ class HolisticNet(nn.Module):
                                              cfg.heatmap_size, cfg.depth_bins, cfg.head_channels, depth_range_m, n_fit,
                                              cfg.segmentation)
         elif cfg.head == "deconv":
-            if cfg.segmentation:
-                raise ValueError("segmentation needs head: pyramid")
             self.keypoint_head = KeypointHead(info.channels, robot.n_keypoints, cfg.input_size, cfg.heatmap_size,
                                               cfg.depth_bins, cfg.deconv_channels, depth_range_m, n_fit,
-                                              info.skip_channels if cfg.skip_connections else ())
+                                              info.skip_channels if cfg.skip_connections else (), cfg.segmentation)
         else:
             raise ValueError(f"unknown head '{cfg.head}' (deconv, pyramid)")
         lower, upper = robot.lower.float().cpu(), robot.upper.float().cpu()

@@ -62,18 +62,21 @@ def save_model(net: HolisticNet, robot: str, path: str | Path, card: dict | None
 ROBOT_SPECIFIC = ("joint_mid", "joint_half", "joint_net.initial", "depth_head.log_lambda0")
 
 
-def transfer_weights(net: HolisticNet, model: str | Path) -> tuple[int, int]:
+def transfer_weights(net: HolisticNet, model: str | Path, whole: bool = False) -> tuple[int, int]:
     """Warm-start `net` from another model (usually another robot's shipped weights): copy every tensor whose
-    name and shape match, except what belongs to the donor's robot (joint limits, initial joints, lambda_0).
+    name and shape match, except what belongs to the donor's robot (joint limits, initial joints, lambda_0);
+    with `whole`, those too (the donor must be of the same robot: the network is extended, not transferred).
     Returns (tensors copied, tensors left as initialized)."""
     card_path, card = read_card(model)
+    if whole and card["robot"] != net.robot_name:
+        raise ValueError(f"{card_path}: a '{card['robot']}' model cannot be extended into a '{net.robot_name}' network")
     if card["model"]["backbone"] != net.cfg.backbone or card["model"]["depth_backbone"] != net.cfg.depth_backbone:
         raise ValueError(f"{card_path}: backbones {card['model']['backbone']}/{card['model']['depth_backbone']} "
                          f"differ from this network's {net.cfg.backbone}/{net.cfg.depth_backbone}")
     donor = load_file(str(card_path.parent / card["weights"]))
     own = net.state_dict()
     copied = {k: v.to(own[k].dtype) for k, v in donor.items()
-              if k in own and own[k].shape == v.shape and k not in ROBOT_SPECIFIC}
+              if k in own and own[k].shape == v.shape and (whole or k not in ROBOT_SPECIFIC)}
     net.load_state_dict(copied, strict=False)
     return len(copied), len(own) - len(copied)
 

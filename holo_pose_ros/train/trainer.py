@@ -59,6 +59,19 @@ def freeze_first_blocks(net: HolisticNet, blocks: int) -> list[torch.nn.Module]:
     return frozen
 
 
+def train_only(net: HolisticNet, prefixes: list[str]) -> list[torch.nn.Module]:
+    """Freeze every parameter whose name starts with none of `prefixes` and keep the whole network in eval mode
+    (fixed BatchNorm statistics, no dropout): trains a new output layer on a shipped network without changing
+    anything it computed before. The trained modules must not depend on the mode (no BatchNorm, no dropout)."""
+    names = [name for name, _ in net.named_parameters()]
+    trained = [n for n in names if any(n.startswith(p) for p in prefixes)]
+    if not trained:
+        raise ValueError(f"train_only {prefixes}: no parameter of the network starts with these names")
+    for name, parameter in net.named_parameters():
+        parameter.requires_grad_(name in trained)
+    return [net]
+
+
 def _campaign_so_far(init_from: str | None) -> tuple[int, float]:
     """(views, wall-clock training hours) that the warm-start model's card records, (0, 0) without one."""
     if not init_from:
@@ -111,6 +124,8 @@ class Trainer:
         self.model_cfg = load_model_config(cfg["model"])
         self.net = HolisticNet(self.model_cfg, self.robot).to(self.device)
         self.frozen = freeze_first_blocks(self.net, cfg.get("freeze_blocks", 0))
+        if cfg.get("train_only"):
+            self.frozen = train_only(self.net, cfg["train_only"])
         self.net = self.net.to(memory_format=torch.channels_last)  # faster on the CPU too (depthwise convolutions)
         views = cfg.get("views", {})
         self.sample_cfg = SampleConfig(
@@ -193,7 +208,7 @@ class Trainer:
         backend = self.cfg.get("frozen_backend", "torch" if self.cuda else "onnxruntime")
         if backend not in ("torch", "onnxruntime"):
             raise ValueError(f"frozen_backend must be torch or onnxruntime, got '{backend}'")
-        if not self.frozen or backend == "torch":
+        if not self.frozen or backend == "torch" or self.cfg.get("train_only"):
             return
         if self.cuda:
             raise ValueError("frozen_backend: onnxruntime is for CPU training")
@@ -260,12 +275,13 @@ class Trainer:
         state = self.load_checkpoint() if resume else None
         if state is None:
             if self.cfg.get("init_from"):
-                copied, fresh = transfer_weights(self.net, self.cfg["init_from"])
+                copied, fresh = transfer_weights(self.net, self.cfg["init_from"], whole=bool(self.cfg.get("train_only")))
                 if self.rank == 0:
                     print(f"warm start from {self.cfg['init_from']}: {copied} tensors copied, {fresh} left as initialized")
-            lam = self.calibrate_depth_scale()
-            if self.rank == 0:
-                print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
+            if not self.cfg.get("train_only"):  # a train_only run keeps its donor's DepthNet scale, like all else
+                lam = self.calibrate_depth_scale()
+                if self.rank == 0:
+                    print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
         self._attach_frozen_prefix()
         self.net.train()
         for module in self.frozen:
