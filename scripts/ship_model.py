@@ -3,9 +3,12 @@ validation) through the deployed estimator, and write holo_pose_ros/weights/<nam
 model card that records the training, the metrics and the commands that measured them. With `--lifter`, the
 lifter ships beside it (<name>_lifter.*, named in the card) and each test set also gets the ablation (feed-forward
 / lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
+A test folder of the unseen look (config/generate/unseen.yaml) also becomes the card's `domain_shift` figure.
 
     python scripts/ship_model.py runs/panda_heatmap_cpu/best.yaml panda --lifter runs/lifter/panda_lifter.yaml \
-        --test data/panda_test_dr:randomized --test data/panda_test_photo:photo --log runs/panda_heatmap_cpu/log.csv
+        --validation data/panda_val_1012 --validation data/panda_val_unseen_1013 \
+        --test data/panda_test_dr:randomized --test data/panda_test_photo:photo --test data/panda_test_unseen:unseen \
+        --log runs/panda_heatmap_cpu/log.csv
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from holo_pose_ros.resources import weights_dir
 KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm", "joint_error_deg",
         "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px")
 ROOT = Path(__file__).resolve().parent.parent
+UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,8 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log", default=None, help="the run's log.csv, kept as docs/training_logs/<run>.csv")
     parser.add_argument("--resume-config", default=None, help="the training recipe the next run resumes with "
                                                               "(default: config/train/<run folder name>.yaml)")
-    parser.add_argument("--validation", default=None, help="generated validation folder (never a test set) on which "
-                                                           "the ablation chooses the default: fitted or feed-forward")
+    parser.add_argument("--validation", action="append", default=[],
+                        help="generated validation folder (never a test set), repeatable (one per look: the unseen "
+                             "look's too); the ablation's mean AUC over them chooses the default: fitted or feed-forward")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
     lifter = load_lifter(args.lifter) if args.lifter else None
@@ -55,13 +60,16 @@ def main(argv: list[str] | None = None) -> int:
         extra["lifter"] = lifter_card.name
         lifter = load_lifter(lifter_card)  # score what ships (float16)
     if lifter is not None and args.validation:
-        ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), DreamReader(args.validation, robot),
-                                    known_joints=False)
-        print(f"validation {args.validation}:\n{format_ablation(ablation)}")
-        score = {m: (r["add_auc"], -(r["add_mean_mm"] or float("inf"))) for m, r in ablation.items()}
-        extra["estimator"] = {"fit": bool(score["fitted"] >= score["feed-forward"]), "chosen_on": args.validation,
-                              "validation": {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
-                                             for m, r in ablation.items()}}
+        ablations = {}
+        for folder in args.validation:
+            ablations[folder] = evaluate_methods(Estimator(net, robot, lifter=lifter), DreamReader(folder, robot),
+                                                 known_joints=False)
+            print(f"validation {folder}:\n{format_ablation(ablations[folder])}")
+        mean_auc = {m: sum(a[m]["add_auc"] for a in ablations.values()) / len(ablations) for m in next(iter(ablations.values()))}
+        extra["estimator"] = {"fit": bool(mean_auc["fitted"] >= mean_auc["feed-forward"]), "chosen_on": args.validation,
+                              "validation": {m: {"add_auc": auc} for m, auc in mean_auc.items()},  # mean over the folders
+                              "validation_by_folder": {folder: {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
+                                                                for m, r in a.items()} for folder, a in ablations.items()}}
         print(f"default: {'fitted' if extra['estimator']['fit'] else 'feed-forward'}")
     fit = extra.get("estimator", {}).get("fit")
     metrics = {}
@@ -98,10 +106,25 @@ def main(argv: list[str] | None = None) -> int:
         shipped["training"]["config"]["out"] = str(Path(out_dir).resolve().relative_to(ROOT.resolve()))  # no host paths
     if "training" in shipped and run_config.exists():  # the next run of the campaign warm-starts from this card
         shipped["training"]["resume_command"] = f"holo-pose train --config {run_config.relative_to(ROOT)}"
+    shift = domain_shift(metrics)
+    if shift:
+        extra["domain_shift"] = shift
     out = save_model(net, robot.name, weights_dir() / args.name, {**extra, **shipped, "test": metrics},
                      dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
+
+
+def domain_shift(metrics: dict) -> dict | None:
+    """The card's domain-shift figure: the test AUC on the unseen look (a look no training config names, the
+    stand-in for a user's camera) beside the training looks', and what the new look costs; None without one."""
+    unseen = {look: m for look, m in metrics.items() if m.get("data", {}).get("look") == UNSEEN_LOOK}
+    if not unseen:
+        return None
+    own = {look: m["add_auc"] for look, m in metrics.items() if look not in unseen}
+    look, m = next(iter(unseen.items()))
+    return {"look": look, "add_auc": m["add_auc"], "add_mean_mm": m["add_mean_mm"], "own_looks_add_auc": own,
+            "auc_lost": {k: round(v - m["add_auc"], 2) for k, v in own.items()}}
 
 
 def _provenance(folder: str, frames: int) -> dict:
