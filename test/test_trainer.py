@@ -160,3 +160,26 @@ def test_a_log_of_an_older_version_gains_the_new_columns_without_misaligning(tmp
     rows = list(csv.DictReader(open(log)))
     assert [(r["step"], r["val_add_auc"], r["val_fitted_add_auc"]) for r in rows] == [
         ("250", "3.4", ""), ("500", "9.2", "20.1"), ("750", "7.1", "21.5")]
+
+
+def test_a_train_only_run_adds_a_mask_layer_and_changes_nothing_else(tmp_path, small_model_card):
+    """train_only on a shipped card (here the small test model): only the new mask layer learns; every tensor the
+    donor had, its DepthNet scale and BatchNorm statistics included, comes out bit-identical."""
+    from small_model import SMALL
+
+    from holo_pose_ros.model.weights import load_model
+
+    cfg = {**tiny_config(tmp_path / "mask"), "model": {**SMALL, "segmentation": True}, "init_from": str(small_model_card),
+           "train_only": ["keypoint_head.mask_out"], "weight_decay": 0.0,
+           "stages": [{"name": "mask", "steps": 4, "lr": 1e-2, "warmup_steps": 1, "losses": {"mask": 1.0}}],
+           "validation": {"every_steps": 4, "frames": 3, "seed": 77}}
+    kept = Trainer(cfg, device="cpu", progress=False).run()
+    donor = load_model(small_model_card)[0].state_dict()
+    trained = load_model(kept)[0].state_dict()
+    assert all(torch.equal(trained[k], v) for k, v in donor.items() if v.dtype.is_floating_point)
+    assert set(trained) - set(donor) == {"keypoint_head.mask_out.weight", "keypoint_head.mask_out.bias"}
+    assert trained["keypoint_head.mask_out.bias"].abs().sum() > 0
+    rows = list(csv.DictReader(open(tmp_path / "mask" / "log.csv")))
+    assert float(rows[-1]["loss_mask"]) > 0
+    with pytest.raises(ValueError, match="no parameter"):
+        Trainer({**cfg, "train_only": ["nothing.here"], "out": str(tmp_path / "bad")}, device="cpu", progress=False)

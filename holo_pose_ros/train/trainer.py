@@ -353,7 +353,9 @@ class Trainer:
         add_mm = report.get("add_mean_mm")
         add_mm = math.inf if add_mm is None else add_mm
         kp2d = report.get("kp2d_fit_median_px")
-        if self.model_cfg.fit_heatmaps:  # the fit's accuracy follows the 2D error of its evidence
+        if self.cfg.get("train_only"):  # the extended network computes what its donor did: keep the latest layer
+            improved = True
+        elif self.model_cfg.fit_heatmaps:  # the fit's accuracy follows the 2D error of its evidence
             improved = kp2d is not None and kp2d < self.best_kp2d_px
         else:
             improved = auc is not None and (auc, -add_mm) > (self.best_auc, -self.best_add_mm)
