@@ -35,3 +35,15 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def panda_meshes(tmp_path_factory):
+    """The Panda model and its link meshes, built into a private mesh cache (tests never share the user's)."""
+    from holo_pose_ros.data.meshes import load_link_meshes
+    from holo_pose_ros.robots.kinematics import RobotModel
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("cache")))
+        model = RobotModel("panda")
+        return model, load_link_meshes(model)

@@ -31,12 +31,9 @@ def renderer():
 
 
 @pytest.fixture(scope="module")
-def panda(tmp_path_factory):
+def panda(panda_meshes):
     """Panda model, meshes (built into a private cache) and its link poses in a camera ~1.5 m away."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("cache")))
-        model = RobotModel("panda")
-        meshes = load_link_meshes(model)
+    model, meshes = panda_meshes
     T_cam_base = np.linalg.inv(look_at(np.array([1.2, 0.6, 0.9]), np.array([0.0, 0.0, 0.45])))
     transforms = model.link_transforms(model.neutral, list(meshes))
     poses = {k: T_cam_base @ v[0].double().numpy() for k, v in transforms.items()}

@@ -14,11 +14,9 @@ from holo_pose_ros.data.generator import (
     DISTRACTOR_LABEL, _post_process, generate, jpeg_roundtrip, load_generator_config, motion_blur, resample,
     shot_noise, tone_curve, vignette,
 )
-from holo_pose_ros.data.meshes import load_link_meshes
 from holo_pose_ros.data.render import Light, Material, Primitive, Renderer, Shading
 from holo_pose_ros.geometry.camera import look_at
 from holo_pose_ros.resources import config_dir
-from holo_pose_ros.robots.kinematics import RobotModel
 
 SEED, N_FRAMES = 7, 3
 
@@ -217,11 +215,9 @@ def renderer():
 
 
 @pytest.fixture(scope="module")
-def link(tmp_path_factory):
+def link(panda_meshes):
     """One Panda link mesh (its own private mesh cache) and a pose that fills part of the image."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("cache")))
-        meshes = load_link_meshes(RobotModel("panda"))
+    meshes = panda_meshes[1]
     name = "panda_link4" if "panda_link4" in meshes else next(iter(meshes))
     T_cam_link = np.linalg.inv(look_at(np.array([0.35, 0.25, 0.2]), meshes[name].vertices.mean(0).astype(float)))
     return name, meshes[name], T_cam_link
