@@ -160,6 +160,23 @@ def _cmd_bag_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_adapt(args: argparse.Namespace) -> int:
+    from holo_pose_ros.adaptation.adapt import adapt, format_adaptation
+    from holo_pose_ros.adaptation.sources import AdaptationInputError
+
+    command = "holo-pose " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("holo-pose") else None
+    try:
+        result = adapt(args.model, args.images, args.out, joint_states_topic=args.joint_states_topic,
+                       camera_info=args.camera_info, image_topic=args.image_topic, camera_info_topic=args.info_topic,
+                       minutes=args.minutes, limit=args.limit, config=args.config, progress=not args.quiet,
+                       seed=args.seed, command=command, plots=args.plots)
+    except AdaptationInputError as e:
+        print(f"holo-pose adapt: error: {e}", file=sys.stderr)
+        return 1
+    print(format_adaptation(result))
+    return 0
+
+
 def _cmd_benchmark(args: argparse.Namespace) -> int:
     import json
 
@@ -309,6 +326,27 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--backend", default="torch", choices=["torch", "onnxruntime"], help="what runs the network")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=_cmd_calibrate)
+
+    a = sub.add_parser("adapt", help="adapt a model to your own camera from its images alone, or with the robot's "
+                                     "joint states (a bag); writes OUT/model.yaml for every command and the node")
+    a.add_argument("--model", required=True, help="parent model: shipped name (panda) or model card path")
+    a.add_argument("--images", required=True, help="a DREAM folder (only its images and camera file are read), a "
+                   "folder of images with a camera_info YAML, or a bag (mcap or sqlite3) with Image + CameraInfo")
+    a.add_argument("--out", required=True, help="folder of the adapted model (must not exist)")
+    a.add_argument("--joint-states-topic", default=None, help="the robot's sensor_msgs/JointState topic in the bag: "
+                   "the fits use the reported joints, far better pseudo-labels")
+    a.add_argument("--minutes", type=float, default=30.0, help="wall-clock budget, minutes (the fine-tuning stops "
+                                                               "when it is spent)")
+    a.add_argument("--camera-info", default=None, help="camera_info YAML of an image folder (default: the folder's "
+                                                       "only YAML file)")
+    a.add_argument("--image-topic", default=None, help="bag Image topic (default: the bag's only one)")
+    a.add_argument("--info-topic", default=None, help="bag CameraInfo topic (default: the bag's only one)")
+    a.add_argument("--limit", type=int, default=None, help="only the first N images")
+    a.add_argument("--config", default=None, help="YAML merged over config/adapt.yaml")
+    a.add_argument("--plots", default=None, help="folder for before/after frames and the consistency-loss curve")
+    a.add_argument("--seed", type=int, default=0, help="random seed of crops and batches")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
+    a.set_defaults(func=_cmd_adapt)
 
     m = sub.add_parser("benchmark", help="per-stage latency, frames/s, GFLOPs and memory of the deployed pipeline")
     m.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")

@@ -56,3 +56,37 @@ def plot_frames_grid(images: list[np.ndarray], pred_uv: list[np.ndarray | None],
         ax.axis("off")
     fig.tight_layout()
     _save(fig, path)
+
+
+def plot_before_after(images: list[np.ndarray], before: list[np.ndarray | None], after: list[np.ndarray | None],
+                      parents: list[int], path: str | Path, titles: list[str] | None = None) -> None:
+    """PNG grid, one row per frame: the estimated skeleton (pixels) of the model before (left) and after (right)
+    adaptation, in red; 'not found' where an estimate is None."""
+    if not images:
+        raise ValueError("plot_before_after needs at least one image")
+    fig = Figure(figsize=(8, 3.2 * len(images)), dpi=100)
+    for k, image in enumerate(images):
+        for column, (uv, when) in enumerate(((before[k], "before"), (after[k], "after"))):
+            ax = fig.add_subplot(len(images), 2, 2 * k + column + 1)
+            ax.imshow(image if uv is None else draw_skeleton(image, np.asarray(uv, float), parents, PRED_COLOUR))
+            name = titles[k] if titles else f"frame {k}"
+            ax.set_title(f"{name}: {when}" + (" (not found)" if uv is None else ""), fontsize=9)
+            ax.axis("off")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_loss_curves(curves: dict[str, np.ndarray], path: str | Path, xlabel: str = "step") -> None:
+    """PNG of loss curves (name -> values a step), each smoothed over a window of a tenth of its length."""
+    fig = Figure(figsize=(6, 4), dpi=100)
+    ax = fig.add_subplot()
+    for name, values in curves.items():
+        values = np.asarray(values, float)
+        window = max(len(values) // 10, 1)
+        smooth = np.convolve(values, np.ones(window) / window, mode="valid") if len(values) else values
+        ax.plot(np.arange(len(smooth)) + window - 1, smooth, label=name)
+    ax.set(xlabel=xlabel, ylabel="loss")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    _save(fig, path)

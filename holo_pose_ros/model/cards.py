@@ -37,7 +37,7 @@ class ModelLoadError(ValueError):
 
 # top-level keys of a model card (save_model, scripts/ship_model.py) and of a lifter card (model/lifter.py)
 MODEL_CARD_KEYS = {"robot", "weights", "weights_sha256", "model", "lifter", "estimator", "training", "validation",
-                   "test", "domain_shift"}
+                   "test", "domain_shift", "adaptation"}
 LIFTER_CARD_KEYS = {"kind", "robot", "weights", "weights_sha256", "fit_keypoints", "joints", "model", "training",
                     "validation"}
 

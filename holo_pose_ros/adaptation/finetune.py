@@ -1,0 +1,123 @@
+"""Keypoint consistency on the user's images (the paper's self-supervision): the fit-keypoint heatmaps are
+trained towards the projection of the fitted kinematics (the pseudo-labels), which is a robot by construction
+where the heatmaps are only evidence. Guarded against drift, as the adaptation probe of December 2026 showed it
+must be: only the named modules train (by default the keypoint head), every BatchNorm layer keeps the statistics
+of the user's images (the network stays in eval mode), the learning rate is small, and every step also trains
+on rendered views with their true labels and the full supervised loss."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from holo_pose_ros.adaptation.crops import jittered_box, network_input
+from holo_pose_ros.adaptation.pseudo_labels import PseudoLabel
+from holo_pose_ros.adaptation.sources import SourceFrame
+from holo_pose_ros.geometry.crop import crop_affine
+from holo_pose_ros.model.heatmaps import gaussian_targets, heatmap_cross_entropy
+from holo_pose_ros.model.network import HolisticNet, add_kinematics
+from holo_pose_ros.robots.kinematics import RobotModel
+
+
+@dataclass
+class FinetuneResult:
+    """What the fine-tuning did: steps, seconds, and the mean losses of its first and last tenth of steps."""
+
+    steps: int
+    seconds: float
+    consistency_first: float
+    consistency_last: float
+    synthetic_first: float
+    synthetic_last: float
+    history: np.ndarray  # (steps, 2): the consistency and synthetic losses of every step
+
+
+def pseudo_batch(frames: list[SourceFrame], labels: list[PseudoLabel], size: int, batch_size: int,
+                 rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, 3, S, S) jittered crops of randomly chosen pseudo-labelled frames, their (B, 3, 3) intrinsics, the
+    labels' fit keypoints in crop px (B, M, 2) and whether each is in the crop and the image (B, M)."""
+    images, Ks, uvs, seen = [], [], [], []
+    for i in rng.integers(len(labels), size=batch_size):
+        label = labels[i]
+        frame = frames[label.frame]
+        box = jittered_box(label.box, rng)
+        x, K = network_input(frame.image, frame.K, box, size)
+        A = crop_affine(box, size)
+        uv = label.uv_fit_px @ A[:2, :2].T + A[:2, 2]
+        images.append(x)
+        Ks.append(K)
+        uvs.append(uv.astype(np.float32))
+        seen.append(label.visible_fit & (uv >= -0.5).all(1) & (uv <= size - 0.5).all(1))
+    return (torch.from_numpy(np.stack(images)), torch.from_numpy(np.stack(Ks)), torch.from_numpy(np.stack(uvs)),
+            torch.from_numpy(np.stack(seen)))
+
+
+def trainable(net: HolisticNet, prefixes: list[str]) -> list[torch.nn.Parameter]:
+    """Freeze every parameter whose name starts with none of `prefixes`; the ones that train."""
+    chosen = []
+    for name, parameter in net.named_parameters():
+        train = any(name.startswith(p) for p in prefixes)
+        parameter.requires_grad_(train)
+        if train:
+            chosen.append(parameter)
+    if not chosen:
+        raise ValueError(f"finetune.train {prefixes}: no parameter of the network starts with these names")
+    return chosen
+
+
+def render_synthetic(robot: str, size: int, generator: str, n: int, seed: int, progress: bool) -> list[dict]:
+    """`n` rendered training views with their true labels (data/training.py), made once and reused."""
+    from holo_pose_ros.data.generator import load_generator_config
+    from holo_pose_ros.data.training import RenderedViews, SampleConfig
+
+    views = RenderedViews(robot, SampleConfig(size, mode_probabilities=(0.85, 0.10, 0.05)),
+                          load_generator_config(generator), seed=seed, length=n)
+    return [views[i] for i in tqdm(range(n), desc="render synthetic views", unit="view", disable=not progress)]
+
+
+def finetune(net: HolisticNet, robot: RobotModel, frames: list[SourceFrame], labels: list[PseudoLabel],
+             synthetic: list[dict], cfg: dict, seconds: float, progress: bool = True, seed: int = 0) -> FinetuneResult:
+    """Train `net` in place for at most `cfg['steps']` steps or `seconds` of wall clock: each step one batch of
+    pseudo-labelled crops (heatmap cross-entropy towards the labels, weight cfg['consistency_weight']) and one
+    of the rendered views (the losses cfg['synthetic_losses']). The network is left in eval mode."""
+    from holo_pose_ros.train.losses import supervised_losses, total_loss
+
+    rng = np.random.default_rng(seed)
+    size, sigma = net.cfg.input_size, net.cfg.heatmap_sigma
+    parameters = trainable(net, list(cfg["train"]))
+    optimizer = torch.optim.AdamW(parameters, lr=float(cfg["lr"]), weight_decay=0.0)
+    net.eval()  # BatchNorm keeps the user's statistics; no dropout
+    history: list[tuple[float, float]] = []
+    start, step = time.perf_counter(), 0
+    bar = tqdm(total=int(cfg["steps"]), desc="adapt", unit="step", disable=not progress)
+    while step < int(cfg["steps"]) and time.perf_counter() - start < seconds:
+        images, Ks, uv, seen = pseudo_batch(frames, labels, size, int(cfg["batch_size"]), rng)
+        out = net(images, Ks)
+        targets = gaussian_targets(uv, out["heatmap_logits"].shape[-1], size, sigma)
+        consistency = heatmap_cross_entropy(out["heatmap_logits"], targets, seen)
+        chosen = rng.integers(len(synthetic), size=int(cfg["synthetic_batch_size"]))
+        batch = {k: torch.stack([synthetic[i][k] for i in chosen]) for k in synthetic[0]}
+        out_s = add_kinematics(robot, {k: v.float() for k, v in net(batch["image"], batch["K_crop"]).items()})
+        terms = supervised_losses(out_s, batch, net.joint_mid, net.joint_half, size, sigma)
+        synthetic_loss = total_loss(terms, cfg["synthetic_losses"])
+        loss = float(cfg["consistency_weight"]) * consistency + synthetic_loss
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(parameters, 5.0)
+        optimizer.step()
+        step += 1
+        history.append((float(consistency.detach()), float(synthetic_loss.detach())))
+        bar.update()
+        bar.set_postfix(consistency=f"{history[-1][0]:.3f}", synthetic=f"{history[-1][1]:.3f}")
+    bar.close()
+    for parameter in net.parameters():
+        parameter.requires_grad_(True)
+    net.eval()
+    tenth = max(len(history) // 10, 1)
+    h = np.array(history) if history else np.full((1, 2), np.nan)
+    return FinetuneResult(step, time.perf_counter() - start, float(h[:tenth, 0].mean()), float(h[-tenth:, 0].mean()),
+                          float(h[:tenth, 1].mean()), float(h[-tenth:, 1].mean()), np.array(history).reshape(-1, 2))
