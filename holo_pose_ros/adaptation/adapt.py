@@ -2,10 +2,10 @@
 joint states, on the CPU. In order (config/adapt.yaml):
   1. the parent model finds the robot in every image (none found anywhere: nothing to adapt to);
   2. BatchNorm statistics of the user's images (batchnorm.py): the whole frames and crops as deployed;
-  3. pseudo-labels from the re-normalized model's own fits (pseudo_labels.py), with the joint states when the
-     source has them, kept where they are confident and two looks agree;
-  4. keypoint consistency (finetune.py): the heatmaps trained towards those labels, rendered labelled views in
-     every step, for what is left of `minutes`.
+  3. when `finetune.steps` > 0 (off by default: measured, it did not pay; docs/adaptation.md): pseudo-labels
+     from the re-normalized model's own fits (pseudo_labels.py), with the joint states when the source has them,
+     kept where they are confident and two looks agree, then keypoint consistency (finetune.py): the heatmaps
+     trained towards those labels, rendered labelled views in every step, for what is left of `minutes`.
 The model (weights, card, its lifter) is written to a temporary folder and renamed to `out` when complete, so an
 interrupted run leaves no half-written model; bad input raises AdaptationInputError and writes nothing."""
 
@@ -139,23 +139,24 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
     with torch.no_grad():
         reestimate_batchnorm(estimator.net, batches(inputs, Ks, int(bn["batch_size"])), keep=float(bn["keep"]))
     del inputs, Ks
-    pl = cfg["pseudo_labels"]
-    candidates = _label_all(estimator, frames, progress)
-    labels = select_labels(candidates, float(pl["min_confidence"]), float(pl["max_disagreement"]),
-                           int(pl["min_visible"]))
-    if len(labels) < int(pl["min_labels"]):
-        raise AdaptationInputError(
-            f"{images}: only {len(labels)} usable pseudo-labels of {len(frames)} images (the robot found twice in "
-            f"{len(candidates)}); adaptation needs {pl['min_labels']}: give more images in which the whole robot is "
-            "seen")
-    ft, tuned = cfg["finetune"], None
-    left_s = minutes * 60.0 - (time.perf_counter() - start)
-    if int(ft["steps"]) > 0 and left_s > 0:
-        synthetic = render_synthetic(estimator.robot.name, estimator.size, ft["synthetic_generator"],
-                                     int(ft["synthetic_views"]), seed=10_000 + seed, progress=progress)
+    ft, tuned, candidates, labels = cfg["finetune"], None, [], []
+    if int(ft["steps"]) > 0:
+        pl = cfg["pseudo_labels"]
+        candidates = _label_all(estimator, frames, progress)
+        labels = select_labels(candidates, float(pl["min_confidence"]), float(pl["max_disagreement"]),
+                               int(pl["min_visible"]))
+        if len(labels) < int(pl["min_labels"]):
+            raise AdaptationInputError(
+                f"{images}: only {len(labels)} usable pseudo-labels of {len(frames)} images (the robot found twice "
+                f"in {len(candidates)}); adaptation needs {pl['min_labels']}: give more images in which the whole "
+                "robot is seen")
         left_s = minutes * 60.0 - (time.perf_counter() - start)
-        tuned = finetune(estimator.net, estimator.robot, frames, labels, synthetic, ft, max(left_s, 0.0), progress,
-                         seed)
+        if left_s > 0:
+            synthetic = render_synthetic(estimator.robot.name, estimator.size, ft["synthetic_generator"],
+                                         int(ft["synthetic_views"]), seed=10_000 + seed, progress=progress)
+            left_s = minutes * 60.0 - (time.perf_counter() - start)
+            tuned = finetune(estimator.net, estimator.robot, frames, labels, synthetic, ft, max(left_s, 0.0),
+                             progress, seed)
     seconds = time.perf_counter() - start
     parent_path, _ = read_card(model)
     adaptation = {
@@ -219,8 +220,9 @@ def _source_figures(parent: str | Path, adapted, folder: str | Path, n_frames: i
 def format_adaptation(result: AdaptResult) -> str:
     """The lines `holo-pose adapt` prints: what was read, found, labelled and trained, and where the model is."""
     lines = [f"{len(result.source.frames)} images ({result.source.kind}"
-             + (", with joint states" if result.source.has_joints else "") + f"): robot found in {result.n_found}, "
-             f"{len(result.labels)} pseudo-labels kept of {result.n_candidates} found twice"]
+             + (", with joint states" if result.source.has_joints else "") + f"): robot found in {result.n_found}"
+             + (f", {len(result.labels)} pseudo-labels kept of {result.n_candidates} found twice"
+                if result.finetune is not None else "") + "; BatchNorm statistics re-estimated on them"]
     if result.source.skipped:
         lines.append("skipped: " + ", ".join(f"{n} {why}" for why, n in result.source.skipped.items()))
     if result.finetune is not None:
