@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, GROUND_TRUTH_NS, IMAGE_MSGTYPE, image_and_intrinsics,
+from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, GROUND_TRUTH_NS, IMAGE_MSGTYPE, image_or_skip,
                                 jazzy_typestore, open_bag, pick_topic, read_messages)
 from holo_pose_ros.calibration import Calibration, average_poses, pose_error
 from holo_pose_ros.geometry.alignment import matrix_to_quaternion_xyzw
@@ -124,12 +124,10 @@ def calibrate_bag(bag: str | Path, model: str | Path, joint_states_topic: str, i
                 logger.warning("image at %d ns skipped: joint state lacks %s", stamp,
                                ", ".join(selection.missing + selection.nonfinite))
                 continue
-            try:
-                image, K = image_and_intrinsics(msg, infos, t_ns, camera_info_topic)
-            except ValueError as e:
-                skipped["unreadable image or CameraInfo"] += 1
-                logger.warning("image at %d ns skipped: %s", stamp, e)
+            usable = image_or_skip(msg, infos, t_ns, camera_info_topic, skipped, stamp)
+            if usable is None:
                 continue
+            image, K = usable
             estimate = estimator.calibrate(image, K, selection.values)
             if not estimate.found:
                 skipped["robot not found"] += 1

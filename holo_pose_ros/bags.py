@@ -362,6 +362,17 @@ def image_and_intrinsics(msg, infos: list[tuple[int, int, object]], t_ns: int, c
     return image, camera_info_to_K(info, use_rectified_p)
 
 
+def image_or_skip(msg, infos: list[tuple[int, int, object]], t_ns: int, camera_info_topic: str, skipped,
+                  stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """image_and_intrinsics, or None (counted in the Counter `skipped`, logged) when the image is unusable."""
+    try:
+        return image_and_intrinsics(msg, infos, t_ns, camera_info_topic)
+    except ValueError as e:
+        skipped["unreadable image or CameraInfo"] += 1
+        logger.warning("image at %d ns skipped: %s", stamp, e)
+        return None
+
+
 def camera_info_for(infos: list[tuple[int, int, object]], image_stamp: int, image_time: int):
     """The CameraInfo with the image's stamp, else the latest one logged at or before the image, else None."""
     exact = [m for t, s, m in infos if s == image_stamp]

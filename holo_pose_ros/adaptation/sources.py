@@ -138,7 +138,7 @@ def read_bag_frames(bag: Path, joint_names: list[str], joint_states_topic: str |
     (within `tolerance_s`, default the node's calibration tolerance). Unusable images are skipped and counted;
     a joint-state topic none of whose messages holds every joint of `joint_names` is an error naming them."""
     from holo_pose_ros.bag_calibration import JOINT_STATE_MSGTYPE, calibration_defaults
-    from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, IMAGE_MSGTYPE, BagReadError, image_and_intrinsics,
+    from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, IMAGE_MSGTYPE, BagReadError, image_or_skip,
                                     jazzy_typestore, open_bag, pick_topic, read_messages)
     from holo_pose_ros.monitoring.stamps import NS, StampBuffer
     from msg_adapters import stamp_ns
@@ -193,12 +193,10 @@ def read_bag_frames(bag: Path, joint_names: list[str], joint_states_topic: str |
                         skipped["no joint state within the tolerance"] += 1
                         continue
                     q = np.asarray(nearest[1], dtype=np.float64)
-                try:
-                    image, K = image_and_intrinsics(msg, infos, t_ns, camera_info_topic)
-                except ValueError as e:
-                    skipped["unreadable image or CameraInfo"] += 1
-                    logger.warning("image at %d ns skipped: %s", stamp, e)
+                usable = image_or_skip(msg, infos, t_ns, camera_info_topic, skipped, stamp)
+                if usable is None:
                     continue
+                image, K = usable
                 frames.append(SourceFrame(f"{image_topic}@{stamp}", image, K, q))
     except BagReadError as e:
         raise AdaptationInputError(str(e)) from e
