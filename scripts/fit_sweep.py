@@ -2,7 +2,9 @@
 variant of config/fit_sweep.yaml, the fitted ADD AUC, median and mean ADD, mean joint error, the root keypoint's
 depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
 reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
-detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs).
+detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs); its
+`silhouette` (default: the model's) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
+truth`, the render's mask).
 
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 --variants config/error_budget.yaml
@@ -20,6 +22,7 @@ import yaml
 from tqdm import tqdm
 
 from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.data.meshes import load_link_meshes
 from holo_pose_ros.estimator import Detection, Estimator
 from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints
 from holo_pose_ros.evaluation.metrics import add_auc
@@ -41,15 +44,19 @@ def main(argv: list[str] | None = None) -> int:
     frames = list(reader)[:args.frames]
     detections = [(f, estimator.detect(reader.load_image(f), f.K)) for f in tqdm(frames, desc="detect")]
     root = estimator.robot.root_index
+    meshes = load_link_meshes(estimator.fitter.robot) if any(v.get("silhouette") for v in variants) else None
+    model_silhouette = estimator.silhouette
     print("| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
           "| fit ms | feed-forward AUC |\n|---|---:|---:|---:|---:|---:|---:|")
     for v in variants:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
-        estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {})
+        estimator.silhouette = bool(v.get("silhouette", model_silhouette))
+        estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {},
+                                  meshes=meshes if estimator.silhouette else None)
         add, add_ff, joints, depth, ms = [], [], [], [], []
         rng = np.random.default_rng(0)
         for frame, detection in detections:
-            detection, depth_prior_m = _evidence(detection, frame, estimator, v.get("evidence") or {}, rng)
+            detection, depth_prior_m = _evidence(detection, frame, estimator, v.get("evidence") or {}, rng, reader)
             out = estimator.estimate_detection(detection, frame.K, methods=("feed-forward", "fitted"),
                                                depth_prior_m=depth_prior_m)
             fitted, ff = out["fitted"], out["feed-forward"]
@@ -67,13 +74,22 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _evidence(detection: Detection | None, frame, estimator: Estimator, evidence: dict,
-              rng: np.random.Generator) -> tuple[Detection | None, float | None]:
+              rng: np.random.Generator, reader: DreamReader) -> tuple[Detection | None, float | None]:
     """The detection a variant's fit sees and its depth prior (metres; None: the heads'). `evidence` keys:
     keypoints: detected (default) | truth | shuffled (each frame's detected 2D errors dealt to its keypoints at
     random: the same sizes without their spatial correlation); clip_px: errors longer than this shortened to it;
-    noise_px: sigma of Gaussian noise added (pixels); depth: heads (default) | truth. Confidences stay detected."""
+    noise_px: sigma of Gaussian noise added (pixels); depth: heads (default) | truth; mask: detected (default) |
+    truth (the render's robot mask). Confidences stay detected."""
     if detection is None or not evidence:
         return detection, None
+    mask = evidence.get("mask", "detected")
+    if mask == "truth":
+        true_mask = reader.load_mask(frame)
+        if true_mask is None:
+            raise ValueError(f"evidence.mask: truth, but frame {frame.name} has no mask file")
+        detection = dataclasses.replace(detection, mask=(true_mask > 0) & (true_mask < 255))  # 255: distractors
+    elif mask != "detected":
+        raise ValueError(f"evidence.mask: {mask!r} is not detected or truth")
     truth = ground_truth_fit_keypoints(estimator.robot, frame)
     errors = detection.uv - truth
     source = evidence.get("keypoints", "detected")
