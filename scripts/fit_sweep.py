@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.meshes import load_link_meshes
+from holo_pose_ros.data.render import robot_foreground
 from holo_pose_ros.estimator import Detection, Estimator
 from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints
 from holo_pose_ros.evaluation.metrics import add_auc
@@ -87,7 +88,7 @@ def _evidence(detection: Detection | None, frame, estimator: Estimator, evidence
         true_mask = reader.load_mask(frame)
         if true_mask is None:
             raise ValueError(f"evidence.mask: truth, but frame {frame.name} has no mask file")
-        detection = dataclasses.replace(detection, mask=(true_mask > 0) & (true_mask < 255))  # 255: distractors
+        detection = dataclasses.replace(detection, mask=robot_foreground(true_mask))
     elif mask != "detected":
         raise ValueError(f"evidence.mask: {mask!r} is not detected or truth")
     truth = ground_truth_fit_keypoints(estimator.robot, frame)

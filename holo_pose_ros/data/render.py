@@ -20,6 +20,12 @@ SHADINGS = ("phong", "flat", "toon")  # fragment shader modes, see Shading
 PRIMITIVE_KINDS = ("box", "sphere", "cylinder")
 DISTRACTOR_LABEL = 255  # label of distractor pixels; robot links get 1..254, nothing 0
 
+def robot_foreground(labels: np.ndarray) -> np.ndarray:
+    """(H, W) bool robot pixels of a label mask (1 + link index on the robot, 0 nothing, DISTRACTOR_LABEL
+    distractors): what a foreground mask is trained towards and a silhouette is fitted to."""
+    return (labels > 0) & (labels != DISTRACTOR_LABEL)
+
+
 _VERTEX_SHADER = """
 #version 330
 uniform mat4 u_proj;   // camera -> clip, from K

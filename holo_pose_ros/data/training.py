@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from holo_pose_ros.data.render import DISTRACTOR_LABEL
+from holo_pose_ros.data.render import robot_foreground
 from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, full_image_box
 
@@ -105,7 +105,7 @@ class RenderedViews(torch.utils.data.Dataset):
         image = _post_process(result.rgba[..., :3] * alpha + background * (1.0 - alpha), gen["post"], rng)
         outside = outside_frame_mask(box, S, W, H)
         image[outside] = 0
-        foreground = (result.labels > 0) & (result.labels != DISTRACTOR_LABEL) & ~outside  # robot pixels in view
+        foreground = robot_foreground(result.labels) & ~outside  # robot pixels in view
         T_cam_root = scene.T_cam_base @ links[model.spec.keypoints[model.root_index].link][0].numpy()
         uv = project(kp_cam, K_crop)
         visible = (uv >= -0.5).all(1) & (uv <= S - 0.5).all(1) & in_image(project(kp_cam, K), W, H)
