@@ -10,6 +10,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -246,3 +247,19 @@ def test_by_default_only_the_batchnorm_statistics_change(unlabelled, tmp_path):
     child = load_file(str(out / "model.safetensors"))
     changed = {k for k in parent if not np.array_equal(parent[k].numpy(), child[k].numpy())}
     assert changed and all(k.endswith(("running_mean", "running_var")) for k in changed), sorted(changed)[:5]
+
+
+def test_a_swallowed_ctrl_c_still_stops_the_fine_tuning_loop():
+    from holo_pose_ros.adaptation.interrupts import sigint_latch
+
+    before = signal.getsignal(signal.SIGINT)
+    with sigint_latch() as check_interrupt:
+        check_interrupt()  # nothing latched yet
+        try:  # a finalizer that swallows the KeyboardInterrupt raised inside it
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+        with pytest.raises(KeyboardInterrupt):
+            check_interrupt()
+    assert signal.getsignal(signal.SIGINT) is before  # the previous handler is back

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from holo_pose_ros.adaptation.batchnorm import reestimate_batchnorm
 from holo_pose_ros.adaptation.crops import batches, deployed_inputs
 from holo_pose_ros.adaptation.finetune import FinetuneResult, finetune, render_synthetic
+from holo_pose_ros.adaptation.interrupts import sigint_latch
 from holo_pose_ros.adaptation.pseudo_labels import PseudoLabel, label_frame, select_labels
 from holo_pose_ros.adaptation.sources import AdaptationInputError, Source, read_source
 from holo_pose_ros.model.cards import file_sha256, read_card
@@ -155,8 +156,9 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
             synthetic = render_synthetic(estimator.robot.name, estimator.size, ft["synthetic_generator"],
                                          int(ft["synthetic_views"]), seed=10_000 + seed, progress=progress)
             left_s = minutes * 60.0 - (time.perf_counter() - start)
-            tuned = finetune(estimator.net, estimator.robot, frames, labels, synthetic, ft, max(left_s, 0.0),
-                             progress, seed)
+            with sigint_latch() as check_interrupt:
+                tuned = finetune(estimator.net, estimator.robot, frames, labels, synthetic, ft, max(left_s, 0.0),
+                                 progress, seed, check_interrupt)
     seconds = time.perf_counter() - start
     parent_path, _ = read_card(model)
     adaptation = {

@@ -8,6 +8,7 @@ on rendered views with their true labels and the full supervised loss."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,10 +81,12 @@ def render_synthetic(robot: str, size: int, generator: str, n: int, seed: int, p
 
 
 def finetune(net: HolisticNet, robot: RobotModel, frames: list[SourceFrame], labels: list[PseudoLabel],
-             synthetic: list[dict], cfg: dict, seconds: float, progress: bool = True, seed: int = 0) -> FinetuneResult:
+             synthetic: list[dict], cfg: dict, seconds: float, progress: bool = True, seed: int = 0,
+             check_interrupt: Callable[[], None] | None = None) -> FinetuneResult:
     """Train `net` in place for at most `cfg['steps']` steps or `seconds` of wall clock: each step one batch of
     pseudo-labelled crops (heatmap cross-entropy towards the labels, weight cfg['consistency_weight']) and one
-    of the rendered views (the losses cfg['synthetic_losses']). The network is left in eval mode."""
+    of the rendered views (the losses cfg['synthetic_losses']). The network is left in eval mode.
+    `check_interrupt` runs before each step (interrupts.sigint_latch: a Ctrl-C is never lost)."""
     from holo_pose_ros.train.losses import supervised_losses, total_loss
 
     rng = np.random.default_rng(seed)
@@ -95,6 +98,8 @@ def finetune(net: HolisticNet, robot: RobotModel, frames: list[SourceFrame], lab
     start, step = time.perf_counter(), 0
     bar = tqdm(total=int(cfg["steps"]), desc="adapt", unit="step", disable=not progress)
     while step < int(cfg["steps"]) and time.perf_counter() - start < seconds:
+        if check_interrupt is not None:
+            check_interrupt()
         images, Ks, uv, seen = pseudo_batch(frames, labels, size, int(cfg["batch_size"]), rng)
         out = net(images, Ks)
         targets = gaussian_targets(uv, out["heatmap_logits"].shape[-1], size, sigma)
