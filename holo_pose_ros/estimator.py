@@ -108,8 +108,7 @@ class Estimator:
 
             meshes = load_link_meshes(fit_robot)
         self.fitter = Fitter(fit_robot, fit_config, meshes=meshes)
-        self._previous: Estimate | None = None
-        self._previous_hint: np.ndarray | None = None  # (N, 2) pixels: the previous estimate's DREAM keypoints
+        self._previous: Estimate | None = None  # the last found estimate (its keypoints crop the next frame)
 
     @classmethod
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
@@ -142,7 +141,7 @@ class Estimator:
 
     def reset(self) -> None:
         """Forget the tracked state (e.g. when the stream jumps)."""
-        self._previous = self._previous_hint = None
+        self._previous = None
 
     @torch.inference_mode()
     def _network(self, image: np.ndarray, K: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> dict:
@@ -228,15 +227,21 @@ class Estimator:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
         the joint states are known and trusted, fixes the joints: only the camera-to-robot pose is estimated
         (calibration mode). The kinematic fit runs unless the estimator was built with `fit=False`."""
-        method = "fitted" if self.fit else "feed-forward"
+        method = self.method(calibrating=False)
         return self.estimate_methods(image, K, known_joints, (method,))[method]
 
     def calibrate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray) -> Estimate:
         """The camera-to-robot pose with the robot's trusted joints (calibration mode): fitted to the detected 2D
         keypoints when the network has fit heatmaps (the pose is then the only unknown of the geometry), else
         the feed-forward heads with those joints."""
-        method = "fitted" if self.net.cfg.fit_heatmaps else "feed-forward"
+        method = self.method(calibrating=True)
         return self.estimate_methods(image, K, np.asarray(known_joints, dtype=np.float64), (method,))[method]
+
+    def method(self, calibrating: bool) -> str:
+        """The method of `estimate` ('fitted' when fitting, else 'feed-forward') or, `calibrating`, of `calibrate`
+        ('fitted' whenever the network has fit heatmaps)."""
+        fitted = self.net.cfg.fit_heatmaps if calibrating else self.fit
+        return "fitted" if fitted else "feed-forward"
 
     def estimate_methods(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None,
                          methods: tuple[str, ...] = METHODS) -> dict[str, Estimate]:
@@ -244,17 +249,25 @@ class Estimator:
         'feed-forward' (the paper's heads), 'lifter' (its best hypothesis by reprojection, no fit) and 'fitted'
         (the kinematic fit from every start). The tracked state follows the last method asked for."""
         _check_methods(methods)
-        _check_inputs(image, K)
-        K = np.asarray(K, dtype=np.float64)
-        timings, start = {}, time.perf_counter()
-        previous = self._previous
-        tracked = self.tracking and previous is not None and previous.found and self._previous_hint is not None
-        detection = self.detect(image, K, timings, uv_hint=self._previous_hint if tracked else None)
-        if tracked and (detection is None or detection.presence < self.min_confidence):
-            self._previous = self._previous_hint = None  # lost the robot: look for it in the whole image again
-            return self.estimate_methods(image, K, known_joints, methods)
+        start = time.perf_counter()
+        detection, tracked, timings = self.detect_frame(image, K)
         return self.estimate_detection(detection, K, known_joints, methods, tracked=tracked, timings=timings,
                                        start=start)
+
+    def detect_frame(self, image: np.ndarray, K: np.ndarray) -> tuple[Detection | None, bool, dict[str, float]]:
+        """The detection of one frame in a stream, as `estimate` makes it: (detection or None, whether its crop
+        came from the previous estimate, timings ms). When tracking and the last estimate found the robot, the crop
+        follows its keypoints; a tracked crop that loses the robot forgets it and localizes in the whole image.
+        The tracked state is read once, so a pipeline may fit frame t (estimate_detection) while it detects t+1."""
+        previous = self._previous
+        if self.tracking and previous is not None:
+            timings: dict[str, float] = {}
+            detection = self.detect(image, K, timings, uv_hint=previous.keypoints_2d)
+            if detection is not None and detection.presence >= self.min_confidence:
+                return detection, True, timings
+            self._previous = None  # lost the robot: look for it in the whole image again
+        timings = {}
+        return self.detect(image, K, timings), False, timings
 
     def estimate_detection(self, detection: Detection | None, K: np.ndarray, known_joints: np.ndarray | None = None,
                            methods: tuple[str, ...] = METHODS, tracked: bool = False,
@@ -274,7 +287,7 @@ class Estimator:
         names = dict(joint_names=self.robot.joint_names, keypoint_names=self.robot.keypoint_names)
         previous = self._previous
         if detection is None or detection.presence < self.min_confidence:
-            self._previous = self._previous_hint = None
+            self._previous = None
             presence = 0.0 if detection is None else detection.presence
             timings["total"] = (time.perf_counter() - start) * 1e3
             box = None if detection is None else detection.box
@@ -317,7 +330,6 @@ class Estimator:
             r.timings_ms["total"] = (time.perf_counter() - start) * 1e3
         last = results[methods[-1]]
         self._previous = last if last.found else None
-        self._previous_hint = last.keypoints_2d if last.found else None
         return results
 
     def _lifter_hypotheses(self, detection: Detection, K: np.ndarray, known_joints: np.ndarray | None,

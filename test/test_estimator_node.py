@@ -282,3 +282,37 @@ def test_a_found_frame_without_frame_id_after_a_not_found_one_is_published(graph
     assert g.spin_until(lambda: g.stamped("joint_states", 5002), image=rgb_to_image(image, no_frame),
                         info=camera_info_msg(K, 320, 240, no_frame))
     assert g.node.stats.errors["internal"] == 0
+
+
+@pytest.mark.parametrize("pipeline", [True, False])
+def test_a_burst_of_frames_is_answered_in_order_each_with_its_own_image(graphs, card, frame, pipeline):
+    """Two different images alternate at 100 Hz, faster than the node answers: whatever it drops, what it
+    publishes comes in stamp order and is the estimate of the image that carried that stamp, whether the network
+    and the fit run as two pipelined stages or on one thread."""
+    image, K = frame
+    images = [image, np.ascontiguousarray(np.roll(image, (9, -14), axis=(0, 1)))]
+    reference = Estimator.from_model(card, "cpu", backend="onnxruntime", min_confidence=0.0)
+    expected = [reference.estimate(im, K).joints for im in images]
+    assert not np.allclose(expected[0], expected[1], atol=1e-3)  # the two frames are told apart by their answers
+    g = graphs(pipeline=pipeline)
+    assert g.node.get_parameter("pipeline").value is pipeline
+    info = camera_info_msg(K, 320, 240, header(7000))
+    assert g.spin_until(lambda: g.node.stats.camera_info_received >= 1, info=info)
+    sent = iter(range(7001, 7061))
+
+    def publish_next():
+        sec = next(sent, None)
+        if sec is not None:
+            g.image_pub.publish(rgb_to_image(images[sec % 2], header(sec)))
+    spin_until(g.executor, lambda: False, timeout=0.6 + 60 * 0.01, action=publish_next, period=0.01)
+    assert g.spin_until(lambda: g.node.stats.received >= 20 and g.node.stats.processed + g.node.stats.dropped
+                        >= g.node.stats.received, timeout=20)
+    g.spin_until(lambda: False, timeout=0.5)
+
+    stamps = [m.header.stamp.sec for m in g.received["joint_states"]]
+    assert len(stamps) >= 3 and stamps == sorted(set(stamps)), stamps
+    for msg in g.received["joint_states"]:
+        np.testing.assert_allclose(msg.position, expected[msg.header.stamp.sec % 2], atol=1e-4)
+    assert [m.header.stamp.sec for m in g.received["pose"]] == stamps
+    assert g.spin_until(lambda: "pipeline" in g.diagnostics())
+    assert g.diagnostics()["pipeline"] == str(pipeline) and g.node.stats.errors["internal"] == 0

@@ -1,6 +1,7 @@
 """ROS 2 node `holo_pose_estimator`: sensor_msgs/Image + CameraInfo in; the robot's joint states, its base pose in the
 camera frame, keypoints, RViz markers, an annotated image and /diagnostics out. Thin: msg_adapters convert the
-messages and Estimator.estimate does the work, on a worker thread that always takes the newest frame.
+messages and the Estimator does the work, on worker threads that always take the newest frame: with `pipeline`
+(the default) one thread runs the network of frame t+1 while another fits and publishes frame t.
 
 Run: `ros2 run holo_pose_ros estimator_node --ros-args -p robot:=panda -p model:=panda -r image:=/camera/image_raw
 -r camera_info:=/camera/camera_info` (or the console script `holo-pose-estimator --ros-args ...`)."""
@@ -59,6 +60,8 @@ PARAMETERS: ParameterSpecs = {
     "use_rectified_p": ("Take K from CameraInfo.p (rectified images) instead of CameraInfo.k.", True, {}),
     "base_frame_id": ("Child frame of ~/transform and /tf (parent: the image's frame_id). Empty: "
                       "<robot>_base_link.", True, {}),
+    "pipeline": ("Two stages on two threads: the network of the next frame runs while the fit of this one does "
+                 "(outputs in order, each with its own image's header). false: one thread does both.", True, {}),
     "tracking": ("Crop from the previous frame's keypoints: one network pass a frame instead of two.", False, {}),
     "min_confidence": ("Estimate confidence [0, 1] (presence x fit quality) below which nothing is published.", False,
                        _PROBABILITY),
@@ -199,6 +202,21 @@ class Stats:
     latency_ms: float = float("nan")  # message received -> results published
 
 
+@dataclass
+class _Job:
+    """One frame between the network stage and the fit stage."""
+
+    msg: Image
+    received: float              # time.monotonic() of its arrival
+    image: np.ndarray            # (H, W, 3) uint8 RGB
+    K: np.ndarray                # (3, 3) intrinsics
+    known: np.ndarray | None     # calibration mode: the robot's joints for this image
+    detection: object            # Detection | None
+    tracked: bool                # its crop came from the previous estimate
+    timings: dict                # ms so far
+    start: float                 # time.perf_counter() when its estimation began
+
+
 class EstimatorNode(Node):
     """Estimates the robot in the newest image with the latest valid CameraInfo; see the module docstring."""
 
@@ -275,9 +293,17 @@ class EstimatorNode(Node):
         self._info_sub = self.create_subscription(CameraInfo, p["camera_info_topic"], self._on_camera_info, SENSOR_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
 
-        self._frames = LatestFrame()
-        self._worker = threading.Thread(target=self._work, name="holo_pose_estimator_worker", daemon=True)
-        self._worker.start()
+        self._frames = LatestFrame()  # subscription -> network stage
+        self._detections = LatestFrame() if p["pipeline"] else None  # network stage -> fit stage
+        self._workers = [threading.Thread(target=self._work, name="holo_pose_estimator_network", daemon=True)]
+        if self._detections is not None:
+            if backend == "onnxruntime":  # the fit stage's torch ops (lifter, FK) are tiny: one thread, not the network's
+                import torch
+
+                torch.set_num_threads(1)
+            self._workers.append(threading.Thread(target=self._fit_work, name="holo_pose_estimator_fit", daemon=True))
+        for worker in self._workers:
+            worker.start()
         self.get_logger().info(
             f"robot '{robot.name}', model '{self.model}' on {device} ({self.estimator.backend}); listening on {self._image_sub.topic_name} and "
             f"{self._info_sub.topic_name} (best effort, depth 1); publishing under {self.get_fully_qualified_name()}/")
@@ -379,23 +405,39 @@ class EstimatorNode(Node):
                 self.stats.camera_info_rejected += 1
             self._error("camera_info", e)
 
-    # -- inference (worker thread) ---------------------------------------------------------------------------
+    # -- inference (worker threads) --------------------------------------------------------------------------
     def _work(self) -> None:
+        """The network stage: detect the newest frame, then fit it here or hand it to the fit stage."""
         while (frame := self._frames.take()) is not None:
             try:
-                self._process(*frame)
+                job = self._detect(*frame)
+                if job is None:
+                    continue
+                if self._detections is None:
+                    self._finish(job)
+                elif self._detections.put(job):  # the fit stage had not taken the previous one: it is stale
+                    with self._lock:
+                        self.stats.dropped += 1
             except Exception as e:  # the worker must outlive any single frame
                 self._error("internal", e)
 
-    def _process(self, msg: Image, received: float) -> None:
-        """Convert, estimate and publish one frame, or count why not."""
+    def _fit_work(self) -> None:
+        """The fit stage of the pipeline: fit and publish detections in the order they were made."""
+        while (job := self._detections.take()) is not None:
+            try:
+                self._finish(job)
+            except Exception as e:
+                self._error("internal", e)
+
+    def _detect(self, msg: Image, received: float) -> _Job | None:
+        """Convert one frame and run the network on it, or count why not (None)."""
         camera = self._camera
         if camera is None:
             with self._lock:
                 self.stats.no_camera_info += 1
             self._log_throttled("no_camera_info", f"no valid CameraInfo on {self._info_sub.topic_name} yet: "
                                                   "skipping images until one arrives")
-            return
+            return None
         info, K = camera
         try:
             image = image_to_rgb(msg, self.max_pixels)
@@ -407,14 +449,23 @@ class EstimatorNode(Node):
             return self._error("camera_info", e)
         known = None
         if self._joint_states is not None and (known := self._known_joints(msg)) is None:
-            return
+            return None
+        start = time.perf_counter()
         try:
-            if known is None:
-                estimate = self.estimator.estimate(image, K)
-            else:  # calibration: only the pose is estimated, with the robot's own joints
-                estimate = self.estimator.calibrate(image, K, known)
+            detection, tracked, timings = self.estimator.detect_frame(image, K)
         except Exception as e:  # a model failure skips the frame, never the node
             return self._error("estimator", e)
+        return _Job(msg, received, image, K, known, detection, tracked, timings, start)
+
+    def _finish(self, job: _Job) -> None:
+        """Estimate from one frame's detection (the fit) and publish it, or count why not."""
+        method = self.estimator.method(calibrating=job.known is not None)
+        try:  # calibration (known joints): only the pose is estimated, with the robot's own joints
+            estimate = self.estimator.estimate_detection(job.detection, job.K, job.known, (method,), job.tracked,
+                                                         job.timings, job.start)[method]
+        except Exception as e:  # a model failure skips the frame, never the node
+            return self._error("estimator", e)
+        msg = job.msg
         with self._lock:
             self.stats.processed += 1
             self.stats.found, self.stats.confidence = estimate.found, estimate.confidence
@@ -424,8 +475,8 @@ class EstimatorNode(Node):
             self._log_throttled("not_found", f"robot not found (confidence {estimate.confidence:.2f} < "
                                              f"{self.estimator.min_confidence:.2f})", "info")
             return
-        self._publish(msg, image, estimate)
-        if known is not None:
+        self._publish(msg, job.image, estimate)
+        if job.known is not None:
             self._calibration.add(estimate.T_cam_base)
             calibration = self._calibration.estimate()
             with self._lock:
@@ -433,7 +484,7 @@ class EstimatorNode(Node):
             self._pubs["calibration"].publish(to_pose_with_covariance(calibration.T_cam_base, calibration.covariance,
                                                                       msg.header))
         with self._lock:
-            self.stats.latency_ms = (time.monotonic() - received) * 1e3
+            self.stats.latency_ms = (time.monotonic() - job.received) * 1e3
 
     def _publish(self, msg: Image, image, estimate) -> None:
         """Every output of a found robot, each with the image's header."""
@@ -481,7 +532,7 @@ class EstimatorNode(Node):
                 **({"calibration_frames": s.calibration_frames, "skipped_no_joint_state": s.no_joint_state,
                     "skipped_joint_state_incomplete": s.joint_state_incomplete, "errors_joint_state":
                     s.errors["joint_state"]} if self._joint_states is not None else {}),
-                "device": self.device, "model": self.model, "image_topic": self._image_sub.topic_name,
+                "device": self.device, "model": self.model, "pipeline": self._detections is not None, "image_topic": self._image_sub.topic_name,
             }
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: pose estimation", message=message,
                                   hardware_id=self.device,
@@ -491,9 +542,13 @@ class EstimatorNode(Node):
         self._diagnostics.publish(array)
 
     def destroy_node(self) -> None:
-        """Stop the worker (it finishes its frame first), then the node."""
+        """Stop the workers (each finishes its frame first), then the node."""
         self._frames.close()
-        self._worker.join()
+        self._workers[0].join()
+        if self._detections is not None:
+            self._detections.close()
+        for worker in self._workers[1:]:
+            worker.join()
         super().destroy_node()
 
 
