@@ -189,7 +189,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
 
         result["node"] = node_latency(args.model, args.data, frames=args.frames, rate_hz=args.node_rate,
-                                      backend=args.backend, tracking=args.tracking, threads=args.threads or 0)
+                                      backend=args.backend, tracking=args.tracking, threads=args.threads or 0,
+                                      pipeline=not args.no_pipeline)
         print(format_node_latency(result["node"]))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
@@ -362,6 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--json", default=None, help="write the figures to this JSON file")
     m.add_argument("--node", action="store_true", help="also time the estimator node in a real ROS 2 graph (image "
                                                       "published -> JointState received)")
+    m.add_argument("--no-pipeline", action="store_true", help="the node figure with pipeline:=false (network and fit "
+                   "on one thread)")
     m.add_argument("--node-rate", type=float, default=30.0, help="camera rate of the node figure, frames/s")
     m.set_defaults(func=_cmd_benchmark)
 

@@ -54,8 +54,9 @@ class LatencyProbe(Node):
 
 
 def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float = 30.0, backend: str = "onnxruntime",
-                 tracking: bool = False, threads: int = 0, startup_timeout_s: float = 300.0) -> dict:
-    """Run the estimator node on `model` and time `frames` images published at `rate_hz` (after a warm-up)."""
+                 tracking: bool = False, threads: int = 0, startup_timeout_s: float = 300.0, pipeline: bool = True) -> dict:
+    """Run the estimator node on `model` and time `frames` images published at `rate_hz` (after a warm-up);
+    `pipeline` is the node's parameter (network and fit on two threads, or one)."""
     from holo_pose_ros.model.cards import read_card
 
     robot = read_card(model)[1]["robot"]  # the node loads the weights; here only the robot's name is needed
@@ -64,7 +65,7 @@ def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float
     env = private_graph_env(base_domain=60)
     log = Path(tempfile.mkdtemp(prefix="holo_pose_node_bench_")) / "estimator.log"
     params = {"robot": robot, "model": str(model), "backend": backend, "threads": threads, "tracking": tracking,
-              "min_confidence": 0.0, "publish_annotated": False, "publish_tf": False}
+              "pipeline": pipeline, "min_confidence": 0.0, "publish_annotated": False, "publish_tf": False}
     process = start_node("estimator_node", params, log, env)
     rclpy.init()
     probe = LatencyProbe(pool, hold=TRACKING_HOLD if tracking else 1)
@@ -100,12 +101,13 @@ def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float
     return {"rate_hz": rate_hz, "sent": len(probe.sent), "answered": int(latencies.size),
             "dropped": len(probe.sent) - int(latencies.size), "fps": latencies.size / sending_s,
             "latency_ms_p50": float(np.percentile(latencies, 50)), "latency_ms_p95": float(np.percentile(latencies, 95)),
-            "latency_ms_max": float(latencies.max()), "backend": backend, "tracking": tracking}
+            "latency_ms_max": float(latencies.max()), "backend": backend, "tracking": tracking, "pipeline": pipeline}
 
 
 def format_node_latency(result: dict) -> str:
     return (f"node (image published -> JointState received, {result['backend']}, "
-            f"{'tracking' if result['tracking'] else 'localize + crop'}): {result['sent']} images at "
+            f"{'tracking' if result['tracking'] else 'localize + crop'}, "
+            f"{'pipelined' if result.get('pipeline', True) else 'one thread'}): {result['sent']} images at "
             f"{result['rate_hz']:.0f} Hz, {result['answered']} answered ({result['fps']:.1f} frames/s), "
             f"{result['dropped']} dropped; latency p50 {result['latency_ms_p50']:.1f} / p95 "
             f"{result['latency_ms_p95']:.1f} / max {result['latency_ms_max']:.1f} ms")
