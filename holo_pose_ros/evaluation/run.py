@@ -32,18 +32,13 @@ def frame_result(frame, estimate: Estimate, seconds: float, robot) -> FrameResul
     )
 
 
-def shipped_method(estimator: Estimator) -> str:
-    """The estimation method whose estimate `Estimator.estimate` returns: what the product outputs."""
-    return "fitted" if estimator.fit else "feed-forward"
-
-
 def depth_sources(estimator: Estimator, detection, K: np.ndarray, known_joints: np.ndarray | None,
                   estimates: dict[str, Estimate]) -> dict[str, Estimate]:
     """One detection's estimates per DEPTH_SOURCES (evaluation/depth.py): DepthNet's (the feed-forward one of
     `estimates`), the fit without the depth prior (2D evidence only; fitted here) and the shipped one."""
     no_prior = estimator.estimate_detection(detection, K, known_joints, ("fitted",), depth_prior=False)["fitted"]
     return {"depthnet": estimates["feed-forward"], "fit_no_prior": no_prior,
-            "shipped": estimates[shipped_method(estimator)]}
+            "shipped": estimates[estimator.method(calibrating=False)]}
 
 
 def diagnosed_estimate(estimator: Estimator, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None
@@ -51,7 +46,7 @@ def diagnosed_estimate(estimator: Estimator, image: np.ndarray, K: np.ndarray, k
     """One untracked frame: the shipped estimate (exactly what `estimate` returns), its seconds, and the estimates
     of the same detection per DEPTH_SOURCES (the fit without the depth prior run after the timing)."""
     timings, start = {}, time.perf_counter()
-    method = shipped_method(estimator)
+    method = estimator.method(calibrating=False)
     detection = estimator.detect(image, K, timings)
     methods = tuple(dict.fromkeys(("feed-forward", method)))
     estimates = estimator.estimate_detection(detection, K, known_joints, methods, timings=timings, start=start)
@@ -110,7 +105,7 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
     report.update(summarize_2d(errors, robot.n_keypoints, n_2d, missed))
     report.update(skipped_frames(reader, skipped_before))
     if diagnose:
-        report["depth_diagnostics"] = build_depth_diagnostics(depth_frames, shipped_method(estimator))
+        report["depth_diagnostics"] = build_depth_diagnostics(depth_frames, estimator.method(calibrating=False))
     return report, results, images
 
 
@@ -130,7 +125,7 @@ def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | Non
     `depth_diagnostics`, the depth_diagnostics section (evaluation/depth.py; one more fit a frame, untimed)."""
     frames = list(reader)[:limit]
     robot = estimator.robot
-    method = shipped_method(estimator)
+    method = estimator.method(calibrating=False)
     results: dict[str, list[FrameResult]] = {}
     depth_frames: list[DepthFrame] = []
     errors, missed, n_2d = [], 0, 0
