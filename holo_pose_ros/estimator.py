@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from holo_pose_ros.geometry.camera import project
+from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.geometry.crop import (CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box,
                                          grid_to_frame_mask)
 from holo_pose_ros.model.network import HolisticNet, add_kinematics
@@ -59,6 +59,7 @@ class Detection:
     out: dict                            # the crop pass's raw network output (batch of 1)
     K_crop: np.ndarray                   # (3, 3) intrinsics of the crop
     mask: np.ndarray | None = None       # (H, W) bool robot foreground in image pixels (networks with segmentation)
+    image_size: tuple[int, int] | None = None  # (W, H) pixels of the image it was detected in
 
 
 class Estimator:
@@ -77,13 +78,14 @@ class Estimator:
     below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
     nothing. With `silhouette` (default: when the network predicts a robot mask), the fit also pulls the robot's
     projected surface into the predicted mask and its outline onto the mask's (fitting/silhouette.py): a depth cue
-    that survives a change of look."""
+    that survives a change of look. Without `off_image_evidence`, fit keypoints detected outside the image (in the
+    crop's padding: guessed, not seen) weigh 0 in the fit."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
-                 depth_prior: bool = True, silhouette: bool | None = None):
+                 depth_prior: bool = True, silhouette: bool | None = None, off_image_evidence: bool = True):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -98,6 +100,7 @@ class Estimator:
         self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
+        self.off_image_evidence = off_image_evidence
         self.silhouette = bool(net.cfg.segmentation) if silhouette is None else silhouette
         if self.silhouette and not net.cfg.segmentation:
             raise ValueError(f"silhouette: the network '{net.cfg.name}' predicts no robot mask (segmentation: false)")
@@ -221,7 +224,7 @@ class Estimator:
             mask = grid_to_frame_mask(out["mask_logits"][0, 0].float().cpu().numpy(), box, self.size, W, H)
             timings["mask"] = (time.perf_counter() - t0) * 1e3
         return Detection(float(torch.sigmoid(out["presence_logit"][0])), box, uv, confidence, out,
-                         crop_affine(box, self.size) @ K, mask)
+                         crop_affine(box, self.size) @ K, mask, (W, H))
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when
@@ -296,6 +299,8 @@ class Estimator:
         ff = self._kinematics(detection.out, known_joints, timings)
         poses = {"feed-forward": (ff["joints"], ff["T_cam_base"], None)}
         weights = self.fit_weights(detection.confidence)
+        if not self.off_image_evidence and detection.image_size is not None:  # guesses in the crop's padding
+            weights = np.where(in_image(detection.uv, *detection.image_size), weights, 0.0)
         hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
             "lifter" in methods or "fitted" in methods) else None
         if hypotheses is not None:  # best first, by reprojection cost

@@ -4,7 +4,8 @@ depth error (signed median and median of its size) and the fit's median time, wi
 reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
 detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs); its
 `silhouette` (default: the model's) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
-truth`, the render's mask).
+truth`, the render's mask); `off_image_evidence: false` gives 0 weight to fit keypoints detected outside the image.
+The last column scores the truncated frames alone (3 or more of DREAM's keypoints out of view).
 
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 --variants config/error_budget.yaml
@@ -47,11 +48,15 @@ def main(argv: list[str] | None = None) -> int:
     root = estimator.robot.root_index
     meshes = load_link_meshes(estimator.fitter.robot) if any(v.get("silhouette") for v in variants) else None
     model_silhouette = estimator.silhouette
-    print("| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
-          "| fit ms | feed-forward AUC |\n|---|---:|---:|---:|---:|---:|---:|")
+    n_keypoints = estimator.robot.n_keypoints
+    truncated = np.array([np.count_nonzero(f.in_image) <= n_keypoints - 3 for f, _ in detections])
+    print(f"| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
+          f"| fit ms | feed-forward AUC | fitted AUC, <= {n_keypoints - 3} of {n_keypoints} keypoints in view "
+          f"({truncated.sum()} frames) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
     for v in variants:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
         estimator.silhouette = bool(v.get("silhouette", model_silhouette))
+        estimator.off_image_evidence = bool(v.get("off_image_evidence", True))
         estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {},
                                   meshes=meshes if estimator.silhouette else None)
         add, add_ff, joints, depth, ms = [], [], [], [], []
@@ -70,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         add, depth = np.array(add), np.array(depth)
         print(f"| {v['name']} | {add_auc(add):.1f} | {np.median(add) * 1e3:.0f} / {np.mean(add[np.isfinite(add)]) * 1e3:.0f} | "
               f"{np.mean(joints):.1f} | {np.median(depth):+.0f}, {np.median(np.abs(depth)):.0f} | {np.nanmedian(ms):.1f} | "
-              f"{add_auc(np.array(add_ff)):.1f} |", flush=True)
+              f"{add_auc(np.array(add_ff)):.1f} | {add_auc(add[truncated]) if truncated.any() else float('nan'):.1f} |",
+              flush=True)
     return 0
 
 
