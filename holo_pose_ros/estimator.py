@@ -6,6 +6,7 @@ grown by CROP_MARGIN. Camera frame OpenCV; metres, radians, pixels."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -79,7 +80,7 @@ class Estimator:
     nothing. With `silhouette` (default: when the network predicts a robot mask), the fit also pulls the robot's
     projected surface into the predicted mask and its outline onto the mask's (fitting/silhouette.py): a depth cue
     that survives a change of look. Without `off_image_evidence`, fit keypoints detected outside the image (in the
-    crop's padding: guessed, not seen) weigh 0 in the fit."""
+    crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
@@ -298,9 +299,10 @@ class Estimator:
         t0 = time.perf_counter()
         ff = self._kinematics(detection.out, known_joints, timings)
         poses = {"feed-forward": (ff["joints"], ff["T_cam_base"], None)}
-        weights = self.fit_weights(detection.confidence)
         if not self.off_image_evidence and detection.image_size is not None:  # guesses in the crop's padding
-            weights = np.where(in_image(detection.uv, *detection.image_size), weights, 0.0)
+            seen = in_image(detection.uv, *detection.image_size)
+            detection = dataclasses.replace(detection, confidence=np.where(seen, detection.confidence, 0.0))
+        weights = self.fit_weights(detection.confidence)
         hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
             "lifter" in methods or "fitted" in methods) else None
         if hypotheses is not None:  # best first, by reprojection cost

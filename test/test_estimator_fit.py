@@ -158,3 +158,29 @@ def test_evaluate_ablation_reports_every_method_on_the_same_frames(tmp_path, cap
     assert reports["fitted, known joints"]["joint_error_deg"]["mean"] == 0.0
     printed = capsys.readouterr().out
     assert "| fitted |" in printed and "fit keypoints" in printed and "2D error, network   panda_link0" in printed
+
+
+def test_without_off_image_evidence_keypoints_outside_the_image_weigh_nothing(estimator, frames):
+    """Keypoints moved into the crop's padding (beyond the image border) change today's fit; with
+    off_image_evidence=False the fit is exactly the one in which they have no confidence at all."""
+    import dataclasses
+
+    image, frame = frames[2]
+    detection = estimator.detect(image, frame.K)
+    W, H = detection.image_size
+    assert (W, H) == (image.shape[1], image.shape[0])
+    moved = detection.uv.copy()
+    outside = np.argsort(-detection.confidence)[:6]  # the most confident ones: their pull is the largest
+    moved[outside] = [-40.0, H / 2]
+    pushed = dataclasses.replace(detection, uv=moved)
+    silenced = dataclasses.replace(pushed, confidence=np.where(np.isin(np.arange(len(moved)), outside), 0.0,
+                                                               detection.confidence))
+    fit = lambda d: estimator.estimate_detection(d, frame.K, None, ("fitted",))["fitted"]  # noqa: E731
+    kept = fit(pushed)
+    estimator.off_image_evidence = False
+    try:
+        gated, reference = fit(pushed), fit(silenced)
+    finally:
+        estimator.off_image_evidence = True
+    np.testing.assert_allclose(gated.joints, reference.joints, atol=1e-9)
+    assert np.abs(kept.joints - gated.joints).max() > 1e-3
