@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from holo_pose_ros.cli import main
 from holo_pose_ros.data.generator import generate
 
@@ -23,15 +25,19 @@ def test_benchmark_reports_stages_and_figures(tmp_path, small_model_card, capsys
     assert "frames/s" in capsys.readouterr().out
 
 
-def test_node_figure_times_the_estimator_node_in_a_real_graph(tmp_path, small_model_card, capsys):
+@pytest.mark.parametrize("flags", [[], ["--no-pipeline"]])
+def test_node_figure_times_the_estimator_node_in_a_real_graph(tmp_path, small_model_card, capsys, flags):
     generate("panda", 2, tmp_path / "frames", seed=5, workers=1, progress=False)
     out = tmp_path / "bench.json"
     assert main(["benchmark", "--model", str(small_model_card), "--data", str(tmp_path / "frames"), "--frames", "6",
-                 "--backend", "onnxruntime", "--node", "--node-rate", "5", "--json", str(out)]) == 0
+                 "--backend", "onnxruntime", "--node", "--node-rate", "5", "--json", str(out), *flags]) == 0
     result = json.loads(out.read_text())
+    assert result["node"]["pipeline"] is not bool(flags)
     assert result["backend"] == "onnxruntime"
     node = result["node"]
     assert node["sent"] == 6 and node["answered"] + node["dropped"] == 6 and node["answered"] >= 1
     # an answer cannot come before its image: at least the in-process estimate's time
     assert result["stages_ms"]["network"]["p50"] < node["latency_ms_p50"] <= node["latency_ms_p95"] <= node["latency_ms_max"]
-    assert "image published -> JointState received" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "image published -> JointState received" in printed
+    assert ("one thread" if flags else "pipelined") in printed
