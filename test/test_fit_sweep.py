@@ -32,7 +32,7 @@ def test_the_sweep_prints_a_row_per_variant(tmp_path):
     rows = [line for line in run.stdout.splitlines() if line.startswith(("| no prior", "| strong", "| true 2D", "| true depth"))]
     assert len(rows) == 4
     cells = [[c.strip() for c in row.strip("|").split("|")] for row in rows]
-    assert all(len(c) == 7 for c in cells)
+    assert all(len(c) == 8 for c in cells)  # the last: the truncated frames alone
     assert cells[0][6] == cells[1][6]            # the same detections: the feed-forward AUC is the same
     assert cells[0][2] != cells[1][2]            # the fits differ
     median_add_mm = [float(c[2].split("/")[0]) for c in cells]
