@@ -532,7 +532,8 @@ class EstimatorNode(Node):
                 **({"calibration_frames": s.calibration_frames, "skipped_no_joint_state": s.no_joint_state,
                     "skipped_joint_state_incomplete": s.joint_state_incomplete, "errors_joint_state":
                     s.errors["joint_state"]} if self._joint_states is not None else {}),
-                "device": self.device, "model": self.model, "pipeline": self._detections is not None, "image_topic": self._image_sub.topic_name,
+                "device": self.device, "model": self.model, "pipeline": self._detections is not None,
+                "image_topic": self._image_sub.topic_name,
             }
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: pose estimation", message=message,
                                   hardware_id=self.device,
