@@ -77,16 +77,20 @@ class Estimator:
     confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
     extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
     below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
-    nothing. With `silhouette` (default: when the network predicts a robot mask), the fit also pulls the robot's
-    projected surface into the predicted mask and its outline onto the mask's (fitting/silhouette.py): a depth cue
-    that survives a change of look. Without `off_image_evidence`, fit keypoints detected outside the image (in the
-    crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them."""
+    nothing. With `silhouette` (a network that predicts a robot mask; off unless asked or its card's
+    `estimator.silhouette` says so), the fit also pulls the robot's projected surface into the predicted mask and
+    its outline onto the mask's (fitting/silhouette.py): measured, it costs AUC on every look
+    (config/silhouette_sweep.yaml) and 25 ms a frame. Without `off_image_evidence`, fit keypoints detected outside the image (in the
+    crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
+    (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: base
+    first, the chains combined, one-joint escapes) for the basins that the starts miss."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
-                 depth_prior: bool = True, silhouette: bool | None = None, off_image_evidence: bool = True):
+                 depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
+                 parts: bool = False):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -102,7 +106,8 @@ class Estimator:
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
         self.off_image_evidence = off_image_evidence
-        self.silhouette = bool(net.cfg.segmentation) if silhouette is None else silhouette
+        self.parts, self._parts_fitter = bool(parts), None
+        self.silhouette = bool(silhouette)
         if self.silhouette and not net.cfg.segmentation:
             raise ValueError(f"silhouette: the network '{net.cfg.name}' predicts no robot mask (segmentation: false)")
         fit_robot = RobotModel(robot.spec, dtype=torch.float64)
@@ -118,16 +123,18 @@ class Estimator:
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
-        network's ONNX export (made once, cached) with `threads` intra-op threads. A card that names no lifter (a
-        training run's card) fits with the robot's shipped lifter, as the run's validation did."""
+        network's ONNX export (made once, cached) with `threads` intra-op threads. The card's `estimator` section sets
+        `fit`, `silhouette` and `parts` unless given. A card that names no lifter (a training run's card) fits with the robot's
+        shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, card = load_model(model, device)
-        validated = (card.get("estimator") or {}).get("fit")
-        if kwargs.get("fit") is None and validated is not None:  # the method the card's validation chose
-            kwargs["fit"] = bool(validated)
+        for key in ("fit", "silhouette", "parts"):  # what the card's validation chose, unless the caller says otherwise
+            validated = (card.get("estimator") or {}).get(key)
+            if kwargs.get(key) is None and validated is not None:
+                kwargs[key] = bool(validated)
         if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model
             from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
@@ -322,8 +329,8 @@ class Estimator:
             silhouette = None
             if self.silhouette and detection.mask is not None and detection.mask.any():
                 silhouette = self.fitter.silhouette(detection.mask)
-            fitted = self.fitter.fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                     depth_prior_m if use_prior else None, silhouette=silhouette)
+            fitted = self.search().fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
+                                       depth_prior_m if use_prior else None, silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
@@ -338,6 +345,16 @@ class Estimator:
         last = results[methods[-1]]
         self._previous = last if last.found else None
         return results
+
+    def search(self):
+        """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced)."""
+        if not self.parts:
+            return self.fitter
+        if self._parts_fitter is None or self._parts_fitter.fitter is not self.fitter:
+            from holo_pose_ros.fitting.parts import PartsFitter
+
+            self._parts_fitter = PartsFitter(self.fitter)
+        return self._parts_fitter
 
     def _lifter_hypotheses(self, detection: Detection, K: np.ndarray, known_joints: np.ndarray | None,
                            timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -3,8 +3,8 @@ variant of config/fit_sweep.yaml, the fitted ADD AUC, median and mean ADD, mean 
 depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
 reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
 detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs); its
-`silhouette` (default: the model's) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
-truth`, the render's mask); `off_image_evidence: false` gives 0 weight to fit keypoints detected outside the image.
+`silhouette` (default: the model card's, off unless it says so) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
+truth`, the render's mask); `parts` (default: the card's) fits by parts (fitting/parts.py); `off_image_evidence: false` gives 0 weight to fit keypoints detected outside the image.
 The last column scores the truncated frames alone (3 or more of DREAM's keypoints out of view).
 
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     detections = [(f, estimator.detect(reader.load_image(f), f.K)) for f in tqdm(frames, desc="detect")]
     root = estimator.robot.root_index
     meshes = load_link_meshes(estimator.fitter.robot) if any(v.get("silhouette") for v in variants) else None
-    model_silhouette = estimator.silhouette
+    model_silhouette, model_parts = estimator.silhouette, estimator.parts
     n_keypoints = estimator.robot.n_keypoints
     truncated = np.array([np.count_nonzero(f.in_image) <= n_keypoints - 3 for f, _ in detections])
     print(f"| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
@@ -57,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
         estimator.silhouette = bool(v.get("silhouette", model_silhouette))
         estimator.off_image_evidence = bool(v.get("off_image_evidence", True))
+        estimator.parts = bool(v.get("parts", model_parts))
         estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {},
                                   meshes=meshes if estimator.silhouette else None)
         add, add_ff, joints, depth, ms = [], [], [], [], []
