@@ -4,6 +4,8 @@ model card that records the training, the metrics and the commands that measured
 lifter ships beside it (<name>_lifter.*, named in the card) and each test set also gets the ablation (feed-forward
 / lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
 A test folder of the unseen look (config/generate/unseen.yaml) also becomes the card's `domain_shift` figure.
+The validation folders choose the default method (`estimator.fit`) and whether the fit searches by parts
+(`estimator.parts`, fitting/parts.py); the tests and their ablation then run with that choice.
 
     python scripts/ship_model.py runs/panda_heatmap_cpu/best.yaml panda --lifter runs/lifter/panda_lifter.yaml \
         --validation data/panda_val_1012 --validation data/panda_val_unseen_1013 \
@@ -33,6 +35,7 @@ KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "a
         "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px")
 ROOT = Path(__file__).resolve().parent.parent
 UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
+BY_PARTS = "fitted by parts"  # the validation's fourth row: the fit searched by parts (fitting/parts.py)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,30 +67,34 @@ def main(argv: list[str] | None = None) -> int:
         for folder in args.validation:
             ablations[folder] = evaluate_methods(Estimator(net, robot, lifter=lifter), DreamReader(folder, robot),
                                                  known_joints=False)
+            ablations[folder][BY_PARTS], _, _ = evaluate_folder(Estimator(net, robot, lifter=lifter, fit=True, parts=True),
+                                                                DreamReader(folder, robot))
             print(f"validation {folder}:\n{format_ablation(ablations[folder])}")
         mean_auc = {m: sum(a[m]["add_auc"] for a in ablations.values()) / len(ablations) for m in next(iter(ablations.values()))}
-        extra["estimator"] = {"fit": bool(mean_auc["fitted"] >= mean_auc["feed-forward"]), "chosen_on": args.validation,
+        fit = bool(max(mean_auc["fitted"], mean_auc[BY_PARTS]) >= mean_auc["feed-forward"])
+        extra["estimator"] = {"fit": fit, "parts": bool(fit and mean_auc[BY_PARTS] > mean_auc["fitted"]),
+                              "chosen_on": args.validation,
                               "validation": {m: {"add_auc": auc} for m, auc in mean_auc.items()},  # mean over the folders
                               "validation_by_folder": {folder: {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
                                                                 for m, r in a.items()} for folder, a in ablations.items()}}
-        print(f"default: {'fitted' if extra['estimator']['fit'] else 'feed-forward'}")
-    fit = extra.get("estimator", {}).get("fit")
+        print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
+    fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
     metrics = {}
     for item in args.test:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter, fit=fit)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts)
         report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
             "command": f"holo-pose evaluate --model {args.name} --data {folder} --out report.json",
-            "method": "fitted" if estimator.fit else "feed-forward",
+            "method": ("fitted" if estimator.fit else "feed-forward") + (" by parts" if estimator.fit and parts else ""),
             **{k: report[k] for k in KEPT if k in report},
         }
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
               f"not found {report['n_not_found']}/{report['n_frames']}")
         if lifter is not None:
-            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter), reader)
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts), reader)
             print(format_ablation(ablation))
             metrics[look or Path(folder).name]["ablation"] = {
                 "command": f"holo-pose evaluate --model {args.name} --data {folder} --ablation",

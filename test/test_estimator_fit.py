@@ -55,6 +55,26 @@ def test_the_default_method_is_the_one_the_card_validated():
     assert Estimator.from_model("panda").fit == validated["fit"]
     assert Estimator.from_model("panda", fit=not validated["fit"]).fit == (not validated["fit"])
     assert set(validated["validation"]) >= {"feed-forward", "lifter", "fitted"}
+    for robot in ("panda", "kuka"):
+        assert Estimator.from_model(robot).parts == bool(read_card(robot)[1]["estimator"].get("parts", False))
+    assert Estimator.from_model("kuka", parts=False).parts is False
+
+
+def test_the_search_by_parts_never_ends_above_the_plain_fit(frames):
+    """The same detections fitted plainly and searched by parts (fitting/parts.py): the search's reprojection cost
+    is never higher."""
+    from holo_pose_ros.fitting.parts import PartsFitter
+
+    plain = Estimator.from_model("panda", min_confidence=0.0, fit=True, parts=False)
+    searched = Estimator.from_model("panda", min_confidence=0.0, fit=True, parts=True)
+    assert isinstance(searched.search(), PartsFitter) and searched.search() is searched.search()
+    for image, frame in frames[:2]:
+        a, b = plain.estimate(image, frame.K), searched.estimate(image, frame.K)
+        np.testing.assert_array_equal(a.detected_2d, b.detected_2d)
+        w = plain.fit_weights(a.detected_confidence)
+        costs = plain.fitter.cost(a.detected_2d, w, frame.K, np.stack([a.joints, b.joints]),
+                                  np.stack([a.T_cam_base, b.T_cam_base]))
+        assert costs[1] <= costs[0] * (1 + 1e-9)
 
 
 def test_fit_never_raises_the_reprojection_cost_of_its_starts(estimator, frames):

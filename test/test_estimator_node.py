@@ -27,6 +27,7 @@ from visualization_msgs.msg import MarkerArray
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.nodes.estimator_node import EstimatorNode, main
 from graph_helpers import domain_ids, spin_until
 from msg_adapters import image_to_rgb, keypoints_2d_from_msg, rgb_to_image
@@ -164,6 +165,10 @@ def test_outputs_carry_the_image_header_and_match_the_core(graphs, card, frame):
 
     # live parameters: a robot that is never confident enough is "not found", and nothing is published for it
     assert not g.node.set_parameters([Parameter("model", value="other")])[0].successful  # read-only
+    assert not g.node.set_parameters([Parameter("parts", value="sometimes")])[0].successful  # not a mode
+    assert g.node.set_parameters([Parameter("parts", value="true")])[0].successful and g.node.estimator.parts
+    assert g.node.set_parameters([Parameter("parts", value="auto")])[0].successful
+    assert g.node.estimator.parts == bool((read_card(g.node.model)[1].get("estimator") or {}).get("parts", False))
     assert g.node.set_parameters([Parameter("min_confidence", value=1.0)])[0].successful
     lost = header(1002)
     assert g.spin_until(lambda: g.node.stats.not_found >= 1, image=rgb_to_image(image, lost),

@@ -62,12 +62,14 @@ class FitResult:
     T_cam_base: np.ndarray    # (4, 4) robot base pose in the camera frame (OpenCV), metres
     cost: float               # the winner's final robust cost per unit weight, px^2
     rms_px: float             # the winner's confidence-weighted RMS reprojection error, px (inf: no usable point)
-    start_index: int          # which start won
+    start_index: int          # which start won (-1: a start that the search by parts made, fitting/parts.py)
     costs: np.ndarray         # (S,) final cost of every start, px^2
     iterations: int           # LM iterations run (chain-growing stages included)
     n_points: int             # usable points (weight >= min_confidence)
     silhouette_cost: float | None = None   # the winner's silhouette terms per unit of their weight, px^2 (None: no
                                            # silhouette)
+    q_starts: np.ndarray | None = None          # (S, J) every start's final joints (the starts, when not run)
+    T_starts: np.ndarray | None = None          # (S, 4, 4) every start's final T_cam<-base
 
 
 def load_fitting_config(config: dict | str | Path | None = None) -> dict:
@@ -185,7 +187,7 @@ class Fitter:
         cfg = self.config
         return Silhouette(mask, int(cfg["silhouette_boundary_points"]), int(cfg["silhouette_margin_px"]))
 
-    def _observations(self, uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def observations(self, uv: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """uv (M, 2) px and weights (M,) checked; non-finite or low-confidence points get weight 0."""
         M = self.tree.n_points
         uv = np.asarray(uv, float).reshape(-1, 2)
@@ -226,7 +228,7 @@ class Fitter:
         """(S,) robust reprojection cost per unit weight (px^2, no prior) of given poses q (S, J), T_cam<-base
         (S, 4, 4), e.g. to compare feed-forward estimates with a fit; with a silhouette, its terms too (as fit
         weighs them); inf where no point is usable."""
-        uv, w = self._observations(uv, weights)
+        uv, w = self.observations(uv, weights)
         q = np.asarray(q, float).reshape(-1, self.tree.n_joints)
         T = np.asarray(T_cam_base, float).reshape(-1, 4, 4)
         K, R, t = np.asarray(K, float), T[:, :3, :3], T[:, :3, 3]
@@ -301,7 +303,7 @@ class Fitter:
         at construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
         and the fit runs even without usable keypoints."""
         cfg = self.config
-        uv, w = self._observations(uv, weights)
+        uv, w = self.observations(uv, weights)
         K = np.asarray(K, float)
         q, R, t = self._starts(q0, T0)
         S, J = q.shape
@@ -324,8 +326,9 @@ class Fitter:
         if n_points < cfg["min_points"] and silhouette is None:
             F_data, sq = self._data_terms(uv, w, K, q, R, t)
             best = int(np.argmin(F_data))
-            return FitResult(q[best].copy(), self._matrices(R, t)[best], float("inf"),
-                             self._rms(sq[best] / max(W, 1e-300), W), best, np.full(S, np.inf), 0, n_points)
+            T_starts = self._matrices(R, t)
+            return FitResult(q[best].copy(), T_starts[best], float("inf"), self._rms(sq[best] / max(W, 1e-300), W),
+                             best, np.full(S, np.inf), 0, n_points, None, q.copy(), T_starts)
 
         min_depth, loss, scale = cfg["min_depth_m"], cfg["robust_loss"], cfg["robust_scale_px"]
 
@@ -421,9 +424,10 @@ class Fitter:
         costs = data_cost(state) / W_all
         best = int(np.argmin(costs))
         silhouette_cost = None if silhouette is None else float((data_cost(state) - state.rho @ w)[best] / W_sil)
-        return FitResult(state.q[best].copy(), self._matrices(state.R, state.t)[best], float(costs[best]),
+        T_starts = self._matrices(state.R, state.t)
+        return FitResult(state.q[best].copy(), T_starts[best], float(costs[best]),
                          self._rms(state.sq[best] @ w / max(W, 1e-300), W), best, costs, iterations, n_points,
-                         silhouette_cost)
+                         silhouette_cost, state.q.copy(), T_starts)
 
     def prior_depth(self, q: np.ndarray, T_cam_base: np.ndarray) -> float:
         """The depth (metres) that the depth prior holds, at joints q (J,) and pose T_cam_base (4, 4): the mean

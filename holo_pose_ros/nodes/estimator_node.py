@@ -67,6 +67,8 @@ PARAMETERS: ParameterSpecs = {
                        _PROBABILITY),
     "fit": ("auto | true | false: fit the kinematic model to the detected 2D keypoints (false: the paper's "
             "feed-forward estimate; auto: the model card's validated choice).", False, {}),
+    "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (20-30 ms a "
+              "frame more; auto: the model card's validated choice).", False, {}),
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
     "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
@@ -89,11 +91,11 @@ JOINT_STATES_HISTORY_S = 5.0  # calibration mode: joint states kept this long be
 FIT_MODES = {"auto": None, "true": True, "false": False}
 
 
-def _fit_mode(value: str) -> bool | None:
-    """The `fit` parameter as the estimator's argument (None: auto)."""
+def _fit_mode(value: str, name: str = "fit") -> bool | None:
+    """The `fit` (or `parts`) parameter as the estimator's argument (None: auto)."""
     mode = str(value).strip().lower()
     if mode not in FIT_MODES:
-        raise ValueError(f"fit must be one of {', '.join(FIT_MODES)}, got {value!r}")
+        raise ValueError(f"{name} must be one of {', '.join(FIT_MODES)}, got {value!r}")
     return FIT_MODES[mode]
 
 
@@ -241,7 +243,7 @@ class EstimatorNode(Node):
                                    f"then reused from {cache_dir()}")
         self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
                                               tracking=p["tracking"], min_confidence=p["min_confidence"],
-                                              fit=_fit_mode(p["fit"]))
+                                              fit=_fit_mode(p["fit"]), parts=_fit_mode(p["parts"], "parts"))
         robot = self.estimator.robot
         if robot.name != p["robot"]:
             raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")
@@ -256,6 +258,7 @@ class EstimatorNode(Node):
             self.declare_parameter(name, value, descriptor, ignore_override=True)
         self._validated_fit = self.estimator.fit if _fit_mode(p["fit"]) is None else bool(
             (read_card(p["model"])[1].get("estimator") or {}).get("fit", self.estimator.auto_fit))
+        self._validated_parts = bool((read_card(p["model"])[1].get("estimator") or {}).get("parts", False))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -310,11 +313,11 @@ class EstimatorNode(Node):
 
     # -- parameters and logging ------------------------------------------------------------------------------
     def _check_parameters(self, parameters: list) -> SetParametersResult:
-        """Refuse values the descriptors cannot express (the `fit` mode)."""
+        """Refuse values the descriptors cannot express (the `fit` and `parts` modes)."""
         for param in parameters:
-            if param.name == "fit":
+            if param.name in ("fit", "parts"):
                 try:
-                    _fit_mode(param.value)
+                    _fit_mode(param.value, param.name)
                 except ValueError as e:
                     return SetParametersResult(successful=False, reason=str(e))
         return SetParametersResult(successful=True)
@@ -330,6 +333,9 @@ class EstimatorNode(Node):
             elif param.name == "fit":
                 mode = _fit_mode(param.value)
                 self.estimator.fit = self._validated_fit if mode is None else mode
+            elif param.name == "parts":
+                mode = _fit_mode(param.value, "parts")
+                self.estimator.parts = self._validated_parts if mode is None else mode
             elif param.name in ("publish_annotated", "publish_tf"):
                 setattr(self, param.name, param.value)
 
