@@ -11,8 +11,11 @@ For every joint, over random views drawn as the generator draws them (joints wit
   the joint from itself plus half a turn except by what little breaks the symmetry, so its error is often about
   180 degrees however good the 2D;
 - a verdict: `weak` under --weak-px-per-deg, `half-turn symmetric` under --symmetric-mm.
+With --data (a generated folder), also what a model's estimates make of it there: each joint's mean and median error,
+the share of frames over 90 degrees off and the mean error modulo half a turn.
 
     python scripts/joint_observability.py --robot panda [--views 200] [--surface-points 3000]
+    python scripts/joint_observability.py --robot panda --model panda --data data/panda_val_1012 [--frames 120]
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import argparse
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from holo_pose_ros.data.generator import load_generator_config
 from holo_pose_ros.data.meshes import load_link_meshes
@@ -61,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weak-px-per-deg", type=float, default=0.5)
     parser.add_argument("--symmetric-mm", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--model", default=None, help="with --data: the model whose estimates are scored (default: "
+                                                      "the robot's shipped one)")
+    parser.add_argument("--data", default=None, help="a generated DREAM folder of the robot")
+    parser.add_argument("--frames", type=int, default=None)
     args = parser.parse_args(argv)
 
     model = RobotModel(args.robot, dtype=torch.float64)
@@ -83,7 +91,33 @@ def main(argv: list[str] | None = None) -> int:
         verdict = ", ".join(v for v, bad in (("weak", speed < args.weak_px_per_deg),
                                               ("half-turn symmetric", chamfer < args.symmetric_mm)) if bad) or "ok"
         print(f"| {name} | {len(moved)} | {speed:.2f} | {chamfer:.1f} | {verdict} |")
+    if args.data:
+        measured_errors(args.model or args.robot, args.data, args.frames)
     return 0
+
+
+def measured_errors(model: str, data: str, frames: int | None) -> None:
+    """Print each revolute joint's error of the model's estimates on a folder: mean, median, share over 90 deg and
+    mean modulo half a turn (degrees); frames where the robot was not found are left out."""
+    from holo_pose_ros.data.dream import DreamReader
+    from holo_pose_ros.estimator import Estimator
+
+    estimator = Estimator.from_model(model, backend="onnxruntime", min_confidence=0.0)
+    reader = DreamReader(data, estimator.robot)
+    errors = []
+    for frame in tqdm(list(reader)[:frames], desc="estimate", unit="frame"):
+        estimate = estimator.estimate(reader.load_image(frame), frame.K)
+        if estimate.found:
+            errors.append(np.degrees(estimate.joints - frame.joints))
+    errors = np.array(errors)
+    print(f"\n{model} on {data}: {len(errors)} frames found")
+    print("| joint | mean deg | median deg | over 90 deg | mean modulo half a turn |\n|---|---:|---:|---:|---:|")
+    for j, name in enumerate(estimator.robot.joint_names):
+        if estimator.robot.joint_types[j] == "prismatic":
+            continue
+        e = np.abs(errors[:, j])
+        half = np.abs((errors[:, j] + 90.0) % 180.0 - 90.0)
+        print(f"| {name} | {e.mean():.1f} | {np.median(e):.1f} | {np.mean(e > 90) * 100:.0f} % | {half.mean():.1f} |")
 
 
 if __name__ == "__main__":
