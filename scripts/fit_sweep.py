@@ -4,7 +4,8 @@ depth error (signed median and median of its size) and the fit's median time, wi
 reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
 detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs); its
 `silhouette` (default: the model card's, off unless it says so) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
-truth`, the render's mask); `parts` (default: the card's) fits by parts (fitting/parts.py); `off_image_evidence: false` gives 0 weight to fit keypoints detected outside the image.
+truth`, the render's mask); `parts` (default: the card's) fits by parts (fitting/parts.py); `off_image_evidence: false` gives 0 weight to fit keypoints detected outside the image; `min_keypoint_confidence`
+drops fit keypoints whose weight (confidence ** weight_power) is below it.
 The last column scores the truncated frames alone (3 or more of DREAM's keypoints out of view).
 
     python scripts/fit_sweep.py --model panda --data data/panda_val_1012 [--frames 160] [--variants config/fit_sweep.yaml]
@@ -48,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     root = estimator.robot.root_index
     meshes = load_link_meshes(estimator.fitter.robot) if any(v.get("silhouette") for v in variants) else None
     model_silhouette, model_parts = estimator.silhouette, estimator.parts
+    model_min_weight = estimator.min_keypoint_confidence
     n_keypoints = estimator.robot.n_keypoints
     truncated = np.array([np.count_nonzero(f.in_image) <= n_keypoints - 3 for f, _ in detections])
     print(f"| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
@@ -55,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
           f"({truncated.sum()} frames) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
     for v in variants:
         estimator.keypoint_weight_power, estimator.depth_prior = v["weight_power"], v["depth_prior"]
+        estimator.min_keypoint_confidence = float(v.get("min_keypoint_confidence", model_min_weight))
         estimator.silhouette = bool(v.get("silhouette", model_silhouette))
         estimator.off_image_evidence = bool(v.get("off_image_evidence", True))
         estimator.parts = bool(v.get("parts", model_parts))
