@@ -12,17 +12,18 @@ def test_benchmark_reports_stages_and_figures(tmp_path, small_model_card, capsys
     generate("panda", 2, tmp_path / "frames", seed=4, workers=1, progress=False)
     out = tmp_path / "bench.json"
     assert main(["benchmark", "--model", str(small_model_card), "--data", str(tmp_path / "frames"), "--frames", "4",
-                 "--fit", "--json", str(out)]) == 0
+                 "--fit", "--parts", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     for key in ("fps", "latency_ms_p50", "latency_ms_p95", "gflops", "params_m", "peak_rss_mb", "device", "backend"):
         assert key in result
     stages = result["stages_ms"]
     assert set(stages) == {"image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "messages",
                            "total"}
-    assert result["fit"] is True and stages["fit"]["p50"] > 0
+    assert result["fit"] is True and result["parts"] is True and stages["fit"]["p50"] > 0
     assert stages["total"]["p50"] >= stages["network"]["p50"] > 0 and result["gflops"] > 0
     assert abs(result["fps"] - 1e3 / stages["total"]["mean"]) < 1e-6
-    assert "frames/s" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "frames/s" in printed and "fitted by parts" in printed
 
 
 @pytest.mark.parametrize("flags", [[], ["--no-pipeline"]])
