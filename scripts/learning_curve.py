@@ -8,7 +8,8 @@ keypoints (pixels of the 640 x 480 frame; DREAM's and all fit keypoints) and val
 deployed estimator (feed-forward, and fitted where the log has it), against cumulative training views and wall-clock training hours on the 2-core CPU; the
 shipped model's point is marked (its card's `training.cumulative_views`). Where a robot's current recipe (its newest
 run's name without the run number) has two or more runs, a dotted power law through their kept points says where
-the curve is going: its exponent and the views and hours it would take to reach `--target-px`.
+the curve is going: its exponent in the recipe's own views (those since its first run started) and the views and
+hours it would take to reach `--target-px`.
 """
 
 from __future__ import annotations
@@ -77,17 +78,31 @@ def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float
         return None
     run_number = r"\d*(_not_shipped)?"  # a run that lost to the shipped one is still a point of its recipe's curve
     recipe = re.sub(run_number + "$", "", names[-1])
-    family = [name for name in names if re.fullmatch(re.escape(recipe) + run_number, name)][-n_runs:]
+    every = [name for name in names if re.fullmatch(re.escape(recipe) + run_number, name)]
+    family = every[-n_runs:]
     if len(family) < 2:
         return None
+    origin = recipe_origin(runs[every[0]])
     kept = [kept_row(runs[name]) for name in family]
-    views = np.array([r["views"] for r in kept])
+    views = np.array([r["views"] for r in kept]) - origin
     px = np.array([r["val_kp2d_fit_median_px"] for r in kept])
     slope, intercept = np.polyfit(np.log(views), np.log(px), 1)
     speed = float(np.mean([r["images_per_s"] for name in family for r in runs[name] if r.get("images_per_s")]))
     needed = math.exp((math.log(target_px) - intercept) / slope) if slope < 0 else math.inf
     return {"recipe": recipe, "runs": family, "views": views, "px": px, "alpha": -slope, "intercept": intercept,
-            "views_needed": needed, "hours_needed": max(needed - views[-1], 0.0) / speed / 3600, "views_s": speed}
+            "origin": origin, "views_needed": needed, "hours_needed": max(needed - views[-1], 0.0) / speed / 3600,
+            "views_s": speed}
+
+
+def recipe_origin(rows: list[dict]) -> float:
+    """The cumulative view count at which a recipe's first run started (its warm-start model's views): its first
+    logged row's views less that row's steps at the run's views per step. The power law counts the recipe's own
+    views: a new head warm-started on a long-trained backbone would otherwise look like a steep curve far along."""
+    first, second = rows[0], rows[1] if len(rows) > 1 else None
+    if second is None or second["step"] == first["step"]:
+        return 0.0
+    per_step = (second["views"] - first["views"]) / (second["step"] - first["step"])
+    return max(first["views"] - first["step"] * per_step, 0.0)
 
 
 def _cell(value) -> str:
@@ -141,12 +156,12 @@ def main() -> None:
         t = trend(runs, robot, args.trend_runs, args.target_px)
         if t is None:
             continue
-        reach = (f"{t['views_needed'] / 1e6:,.1f} M views, {t['hours_needed']:,.0f} more training hours at "
+        reach = (f"{t['views_needed'] / 1e6:,.2f} M views of the recipe, {t['hours_needed']:,.0f} more training hours at "
                  f"{t['views_s']:.0f} views/s" if t["hours_needed"] < 1e5 else "beyond 100,000 training hours")
         trends.append(f"- {robot}, `{t['recipe']}*` ({', '.join(t['runs'])}): px ~ views^-{t['alpha']:.2f}; "
                       f"{args.target_px:g} px: {reach}")
         x = np.geomspace(t["views"][0], t["views"][-1] * 1.5, 20)
-        axes[0].plot(x / 1e3, np.exp(t["intercept"]) * x ** -t["alpha"], "k:", lw=1.5,
+        axes[0].plot((x + t["origin"]) / 1e3, np.exp(t["intercept"]) * x ** -t["alpha"], "k:", lw=1.5,
                      label="power law of the current recipe" if len(trends) == 1 else None)
     if trends:
         table += ["", f"Where the curves go (a power law through the kept points of each robot's last "
