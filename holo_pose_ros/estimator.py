@@ -82,8 +82,8 @@ class Estimator:
     its outline onto the mask's (fitting/silhouette.py): measured, it costs AUC on every look
     (config/silhouette_sweep.yaml) and 25 ms a frame. Without `off_image_evidence`, fit keypoints detected outside the image (in the
     crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
-    (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: base
-    first, the chains combined, one-joint escapes) for the basins that the starts miss."""
+    (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
+    chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,

@@ -106,6 +106,7 @@ class KinematicTree:
         self._coef = (gain[:, None] * ancestor)[:, None, :]                    # (B, 1, M)
         self._to_joint = np.zeros((self.n_bodies, n_joints))
         self._to_joint[moving, source[moving]] = 1.0
+        self.point_joints = (np.abs(self._coef[:, 0, :]).T @ self._to_joint) > 0   # (M, J) bool: joints moving a point
         self._local_h = np.concatenate([point_local, np.ones((self.n_points, 1))], axis=1).T.copy()  # (4, M)
         self._point_index = np.arange(self.n_points)
 

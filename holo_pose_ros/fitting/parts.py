@@ -54,13 +54,7 @@ def chains_of(tree: KinematicTree) -> Chains:
         if tree.gain[b] != 0.0:
             joint_chain[tree.source[b]] = index[top[b]]
     point_chain = np.array([index[top[b]] if b > 0 else -1 for b in tree.point_body], int)
-    moves = np.zeros((tree.n_points, tree.n_joints), bool)
-    for m, b in enumerate(tree.point_body):
-        while b > 0:
-            if tree.gain[b] != 0.0:
-                moves[m, tree.source[b]] = True
-            b = tree.parent[b]
-    return Chains(joint_chain, point_chain, moves, len(roots))
+    return Chains(joint_chain, point_chain, tree.point_joints, len(roots))
 
 
 class PartsFitter:
@@ -74,13 +68,15 @@ class PartsFitter:
         self.revolute = np.array([t != "prismatic" for t in fitter.robot.joint_types])
 
     def point_costs(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q: np.ndarray,
-                    T_cam_base: np.ndarray) -> np.ndarray:
-        """(S, M) each fit point's weighted robust reprojection cost (px^2) at poses q (S, J), T (S, 4, 4)."""
+                    T_cam_base: np.ndarray, scale_px: float | None = None) -> np.ndarray:
+        """(S, M) each fit point's weighted robust reprojection cost (px^2) at poses q (S, J), T (S, 4, 4), the
+        robust loss at `scale_px` (default: the fit's robust_scale_px)."""
         cfg = self.fitter.config
         T = np.asarray(T_cam_base, float).reshape(-1, 4, 4)
         r = reprojection_residuals(self.fitter.tree.points(q), T[:, :3, :3], T[:, :3, 3], np.asarray(K, float),
                                    np.asarray(uv, float), cfg["min_depth_m"])
-        rho, _ = robust_weights(np.sum(r * r, axis=-1), cfg["robust_loss"], cfg["robust_scale_px"])
+        rho, _ = robust_weights(np.sum(r * r, axis=-1), cfg["robust_loss"],
+                                cfg["robust_scale_px"] if scale_px is None else scale_px)
         return rho * np.asarray(weights, float)
 
     def combine(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q: np.ndarray, T_cam_base: np.ndarray,
@@ -118,10 +114,8 @@ class PartsFitter:
             cand_q = np.repeat(beam_q, len(values), 0)
             cand_q[:, pair] = np.tile(values, (len(beam_q), 1))
             cand_T = np.repeat(beam_T, len(values), 0)
-            r = reprojection_residuals(fitter.tree.points(cand_q), cand_T[:, :3, :3], cand_T[:, :3, 3], K, uv,
-                                       cfg["min_depth_m"])
-            rho, _ = robust_weights(np.sum(r * r, axis=-1), cfg["robust_loss"], cfg["parts_grid_scale_px"])
-            order = np.argsort(rho @ seen, kind="stable")[:width]
+            costs = self.point_costs(uv, seen, K, cand_q, cand_T, cfg["parts_grid_scale_px"]).sum(axis=1)
+            order = np.argsort(costs, kind="stable")[:width]
             refined = self.screen.fit(uv, seen, K, cand_q[order], cand_T[order], depth_prior_m=depth_prior_m)
             beam_q, beam_T = refined.q_starts, refined.T_starts
         return beam_q, beam_T
@@ -132,9 +126,6 @@ class PartsFitter:
         """As Fitter.fit, with the search (the module docstring); with known_joints only the pose is unknown and
         this is Fitter.fit. `iterations` counts the LM iterations of every fit run."""
         fitter, cfg = self.fitter, self.fitter.config
-        J = fitter.tree.n_joints
-        q0 = np.clip(np.asarray(q0, float).reshape(-1, J), fitter.lower, fitter.upper)
-        T0 = np.asarray(T0, float).reshape(-1, 4, 4)
         kwargs = dict(depth_prior_m=depth_prior_m, silhouette=silhouette)
         if known_joints is not None:
             return fitter.fit(uv, weights, K, q0, T0, known_joints, **kwargs)

@@ -256,9 +256,10 @@ class EstimatorNode(Node):
                                      ("keypoint_names", robot.keypoint_names, "~/keypoints and ~/keypoints_2d")]:
             descriptor = ParameterDescriptor(description=f"Order of {outputs} (from the robot YAML).", read_only=True)
             self.declare_parameter(name, value, descriptor, ignore_override=True)
+        validated = read_card(p["model"])[1].get("estimator") or {}   # what `auto` goes back to
         self._validated_fit = self.estimator.fit if _fit_mode(p["fit"]) is None else bool(
-            (read_card(p["model"])[1].get("estimator") or {}).get("fit", self.estimator.auto_fit))
-        self._validated_parts = bool((read_card(p["model"])[1].get("estimator") or {}).get("parts", False))
+            validated.get("fit", self.estimator.auto_fit))
+        self._validated_parts = bool(validated.get("parts", False))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
