@@ -46,13 +46,13 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
               threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool | None = None,
-              parts: bool | None = None) -> dict:
+              parts: bool | None = None, localize_size: int | None = None) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
     Tracking needs a stream: each frame is then held for TRACKING_HOLD frames (a camera watching a slow arm)."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
-                                     min_confidence=0.0, fit=fit, parts=parts)
+                                     min_confidence=0.0, fit=fit, parts=parts, localize_size=localize_size)
     reader = DreamReader(data, estimator.robot)
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
     parents = estimator.robot.keypoint_parents
@@ -88,7 +88,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),
-        "backend": backend, "fit": estimator.fit, "parts": estimator.parts,
+        "backend": backend, "fit": estimator.fit, "parts": estimator.parts, "localize_size": estimator.localize_size,
     }
 
 
@@ -115,7 +115,8 @@ def format_benchmark(result: dict) -> str:
     lines = [f"{result['model']} ({result['config']}, {result['input_size']} px, "
              f"{'tracking: 1 pass' if result['tracking'] else 'localize + crop: 2 passes'}) on {result['device']}, "
              f"backend {result['backend']}, {'fitted' if result['fit'] else 'feed-forward'}"
-             f"{' by parts' if result['fit'] and result.get('parts') else ''}",
+             f"{' by parts' if result['fit'] and result.get('parts') else ''}"
+             f"{', localizer at ' + str(result['localize_size']) + ' px' if result.get('localize_size') else ''}",
              f"{'stage':<18}{'mean':>8}{'p50':>8}{'p95':>8}{'max':>8}  ms"]
     for stage, s in result["stages_ms"].items():
         lines.append(f"{stage:<18}{s['mean']:8.1f}{s['p50']:8.1f}{s['p95']:8.1f}{s['max']:8.1f}")

@@ -70,7 +70,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
 
     estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking,
-                                     fit=args.fit, parts=args.parts)
+                                     fit=args.fit, parts=args.parts, localize_size=args.localize_size)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     if args.ablation:
         reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet,
@@ -183,7 +183,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from holo_pose_ros.benchmark import benchmark, format_benchmark
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
-                       threads=args.threads, backend=args.backend, fit=args.fit, parts=args.parts)
+                       threads=args.threads, backend=args.backend, fit=args.fit, parts=args.parts,
+                       localize_size=args.localize_size)
     print(format_benchmark(result))
     if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
@@ -268,6 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--parts", action=argparse.BooleanOptionalAction, default=None,
                    help="search the fit by parts, each chain swept two joints at a time (fitting/parts.py; "
                         "default: the model card's validated choice)")
+    e.add_argument("--localize-size", type=int, default=None, metavar="PX",
+                   help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
+                        "keypoints); 0: the full network at the crop's size (default: the model card's choice)")
     e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
                                                          "lifter, fitted, and fitted with the true joints")
     e.add_argument("--depth-diagnostics", action=argparse.BooleanOptionalAction, default=None,
@@ -364,6 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--parts", action=argparse.BooleanOptionalAction, default=None,
                    help="search the fit by parts, each chain swept two joints at a time (fitting/parts.py; "
                         "default: the model card's validated choice)")
+    m.add_argument("--localize-size", type=int, default=None, metavar="PX",
+                   help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
+                        "keypoints); 0: the full network at the crop's size (default: the model card's choice)")
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")

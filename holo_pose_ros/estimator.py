@@ -18,7 +18,7 @@ import torch
 from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.geometry.crop import (CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box,
                                          grid_to_frame_mask)
-from holo_pose_ros.model.network import HolisticNet, add_kinematics
+from holo_pose_ros.model.network import HolisticNet, Localizer, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
 BACKENDS = ("torch", "onnxruntime")
@@ -83,14 +83,17 @@ class Estimator:
     (config/silhouette_sweep.yaml) and 25 ms a frame. Without `off_image_evidence`, fit keypoints detected outside the image (in the
     crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
     (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
-    chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss."""
+    chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss.
+    With `localize_size` (px, a multiple of 32; off unless asked or its card's `estimator.localize_size` says so)
+    the whole-image pass is the network's 2D-only `localize` at that input (`localizer`: what runs it, e.g. its
+    ONNX export): presence and DREAM's keypoints, no depth, joints or 3D volume, at a lower resolution."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
                  depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
-                 parts: bool = False):
+                 parts: bool = False, localize_size: int | None = None, localizer: Callable | None = None):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -99,6 +102,15 @@ class Estimator:
         self.backend = backend
         self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
         self.size = net.cfg.input_size
+        self.localize_size = None if localize_size is None else int(localize_size)
+        self.localizer = None
+        if self.localize_size is not None:
+            if self.localize_size < 32 or self.localize_size % 32:
+                raise ValueError(f"localize_size must be a positive multiple of 32 px (got {localize_size})")
+            if not net.cfg.fit_heatmaps:
+                raise ValueError(f"localize_size: the network '{net.cfg.name}' has no fit heatmaps, so no 2D-only "
+                                 "localize pass (leave localize_size unset)")
+            self.localizer = localizer or Localizer(self.net)
         self.min_confidence, self.tracking = min_confidence, tracking
         self.lifter = lifter
         self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
@@ -124,7 +136,7 @@ class Estimator:
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
         network's ONNX export (made once, cached) with `threads` intra-op threads. The card's `estimator` section sets
-        `fit`, `silhouette` and `parts` unless given. A card that names no lifter (a training run's card) fits with the robot's
+        `fit`, `silhouette`, `parts` and `localize_size` unless given (`localize_size=0`: the full pass). A card that names no lifter (a training run's card) fits with the robot's
         shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
@@ -135,6 +147,10 @@ class Estimator:
             validated = (card.get("estimator") or {}).get(key)
             if kwargs.get(key) is None and validated is not None:
                 kwargs[key] = bool(validated)
+        if kwargs.get("localize_size") is None:
+            kwargs["localize_size"] = (card.get("estimator") or {}).get("localize_size")
+        if kwargs["localize_size"] == 0:  # 0: the full network pass, whatever the card says
+            kwargs["localize_size"] = None
         if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model
             from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
@@ -148,6 +164,8 @@ class Estimator:
             from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
 
             network = OnnxNetwork(cached_export(net, model), device, threads)
+            if kwargs["localize_size"] is not None:
+                kwargs["localizer"] = OnnxNetwork(cached_export(net, model, kwargs["localize_size"]), device, threads)
         return cls(net, robot, device, network=network, backend=backend, **kwargs)
 
     def reset(self) -> None:
@@ -186,7 +204,10 @@ class Estimator:
         training crops its views around them: the box of all fit keypoints is larger (they reach the robot's
         surface), which shrinks the robot in the crop and costs 2D accuracy."""
         box = full_image_box(image.shape[1], image.shape[0])
-        out = self._network(image, K, box, {} if timings is None else timings)
+        timings = {} if timings is None else timings
+        if self.localizer is not None:
+            return self._localize_light(image, box, timings)
+        out = self._network(image, K, box, timings)
         uv, confidence = self._keypoints_2d(out, box)
         uv = uv[:self.robot.n_keypoints]  # the fit keypoints list DREAM's first
         if confidence is not None:
@@ -194,6 +215,21 @@ class Estimator:
             if confident.sum() >= 2:
                 uv = uv[confident]
         return float(torch.sigmoid(out["presence_logit"][0])), uv
+
+    @torch.inference_mode()
+    def _localize_light(self, image: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> tuple[float, np.ndarray]:
+        """`localize` through the 2D-only localizer at `localize_size`; adds to the 'crop' and 'network' timings."""
+        t0 = time.perf_counter()
+        crop = crop_image(image, box, self.localize_size).transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1 / 255)
+        x = torch.from_numpy(crop).to(self.device)
+        t1 = time.perf_counter()
+        out = self.localizer(x)
+        t2 = time.perf_counter()
+        timings["crop"] = timings.get("crop", 0.0) + (t1 - t0) * 1e3
+        timings["network"] = timings.get("network", 0.0) + (t2 - t1) * 1e3
+        uv = _apply(np.linalg.inv(crop_affine(box, self.localize_size)), out["uv"][0].double().cpu().numpy())
+        confident = out["confidence"][0].double().cpu().numpy() >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
+        return float(torch.sigmoid(out["presence_logit"][0])), uv[confident] if confident.sum() >= 2 else uv
 
     def _keypoints_2d(self, out: dict, box: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Image-pixel 2D keypoints of one pass on `box`: the fit keypoints' heatmap peaks and confidences (M,),

@@ -178,6 +178,21 @@ def test_outputs_carry_the_image_header_and_match_the_core(graphs, card, frame):
     assert g.spin_until(lambda: int(g.diagnostics().get("robot_not_found", 0)) >= 1)
 
 
+def test_the_localizer_size_parameter_reaches_the_estimator(graphs, card, frame):
+    """`localize_size:=32` runs the whole-image pass 2D-only at 32 px (its own ONNX graph); the outputs are the
+    core's with the same setting."""
+    image, K = frame
+    g = graphs(localize_size=32)
+    assert g.node.estimator.localize_size == 32 and g.node.estimator.localizer is not None
+    stamp = header(3001)
+    assert g.spin_until(lambda: g.stamped("joint_states", 3001), image=rgb_to_image(image, stamp),
+                        info=camera_info_msg(K, 320, 240, stamp))
+    reference = Estimator.from_model(card, "cpu", backend="onnxruntime", min_confidence=0.0,
+                                     localize_size=32).estimate(image, K)
+    np.testing.assert_allclose(g.stamped("joint_states", 3001)[0].position, reference.joints, atol=1e-4)
+    assert graphs().node.estimator.localizer is None  # -1: the card's choice, which names none
+
+
 def raw_image(height: int, width: int, encoding: str, step: int, data: bytes, stamp: Header) -> Image:
     msg = Image(header=stamp, height=height, width=width, encoding=encoding, is_bigendian=0, step=step)
     msg.data = data

@@ -72,11 +72,7 @@ at zero, so a network warm-started without them computes the same function at fi
         """(B, C, S/32, S/32) (and the skip maps, finest last) -> uv (B, N, 2) crop px, dz (B, N) m, confidence
         (B, N) in [0, 1]; with fit heatmaps also heatmap_logits (B, M, H, W) and, in eval mode, fit_uv (B, M, 2)
         crop px and fit_confidence (B, M)."""
-        deconvolved = features
-        for k in range(len(self.deconv) // 3):
-            deconvolved = self.deconv[3 * k + 2](self.deconv[3 * k + 1](self.deconv[3 * k](deconvolved)))
-            if k < len(self.skips):
-                deconvolved = deconvolved + self.skips[k](skips[k])
+        deconvolved = self.heatmap_features(features, skips)
         logits = self.out(deconvolved)
         B = logits.shape[0]
         prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, self.size, self.size)
@@ -89,6 +85,17 @@ at zero, so a network warm-started without them computes the same function at fi
         if self.mask_out is not None:
             out["mask_logits"] = self.mask_out(deconvolved)
         return out
+
+
+    def heatmap_features(self, features: torch.Tensor, skips: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """The deconvolved map (B, C, S/4, S/4) that every output reads; any crop size S that is a multiple of 32
+        (the localizer's lower-resolution pass reads only this and the fit heatmaps)."""
+        deconvolved = features
+        for k in range(len(self.deconv) // 3):
+            deconvolved = self.deconv[3 * k + 2](self.deconv[3 * k + 1](self.deconv[3 * k](deconvolved)))
+            if k < len(self.skips):
+                deconvolved = deconvolved + self.skips[k](skips[k])
+        return deconvolved
 
 
 def _separable(channels: int) -> nn.Sequential:
@@ -124,12 +131,7 @@ class PyramidHead(nn.Module):
         """(B, C, S/32, S/32) and the skip maps at strides 16, 8, 4 -> uv (B, N, 2) crop px, dz (B, N) m,
         confidence (B, N); heatmap_logits (B, M, H, W) and in eval mode fit_uv (B, M, 2) crop px and fit_confidence
         (B, M); mask_logits (B, 1, H, W) (robot foreground, before the sigmoid)."""
-        x = self.lateral[0](features)
-        levels = []
-        for lateral, refine, skip in zip(self.lateral[1:], self.refine, skips):
-            x = refine(F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False) + lateral(skip))
-            levels.append(x)
-        stride8, stride4 = levels[1], levels[2]
+        stride8, stride4 = self._levels(features, skips)[1:]
         logits = self.out(stride8)
         B, H8 = logits.shape[0], logits.shape[-1]
         prob = torch.softmax(logits.reshape(B, self.n, -1).float(), dim=-1).reshape(B, self.n, self.d, H8, H8)
@@ -142,6 +144,21 @@ class PyramidHead(nn.Module):
         if self.mask_out is not None:
             out["mask_logits"] = self.mask_out(stride4)
         return out
+
+
+    def _levels(self, features: torch.Tensor, skips: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The merged, refined maps at strides 16, 8 and 4."""
+        x = self.lateral[0](features)
+        levels = []
+        for lateral, refine, skip in zip(self.lateral[1:], self.refine, skips):
+            x = refine(F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False) + lateral(skip))
+            levels.append(x)
+        return levels
+
+    def heatmap_features(self, features: torch.Tensor, skips: list[torch.Tensor]) -> torch.Tensor:
+        """The stride-4 map (B, width, S/4, S/4) that the fit heatmaps and the mask read; any crop size S that is
+        a multiple of 32."""
+        return self._levels(features, skips)[2]
 
 
 def soft_argmax_3d(prob: torch.Tensor, crop_size: int, depth_range_m: float) -> dict[str, torch.Tensor]:

@@ -8,12 +8,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 import yaml
 from torch import nn
 
 from holo_pose_ros.geometry.rotation import matrix_to_rot6d, rot6d_to_matrix
 from holo_pose_ros.model.backbones import build_backbone
 from holo_pose_ros.model.heads import DepthHead, IterativeRegressor, KeypointHead, PyramidHead, reference_depth
+from holo_pose_ros.model.heatmaps import decode_heatmaps
 from holo_pose_ros.resources import config_dir
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -106,11 +108,28 @@ class HolisticNet(nn.Module):
                                                cfg.regressor_hidden, cfg.dropout)
         self.presence = nn.Linear(info.channels, 1)
 
-    def forward(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _features(self, image: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
+        """The backbone's stride-32 features and, with skip connections, its maps at strides 16, 8, 4."""
         if self.cfg.skip_connections:
-            features, skips = self.backbone.pyramid((image - self.mean) / self.std)
-        else:
-            features, skips = self.backbone((image - self.mean) / self.std), None
+            return self.backbone.pyramid((image - self.mean) / self.std)
+        return self.backbone((image - self.mean) / self.std), None
+
+    def localize(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The whole-image pass of detection, 2D only: image (B, 3, S, S) in [0, 1], any S that is a multiple of
+        32 (a lower one than the crop's costs less) -> presence_logit (B,), and DREAM's keypoints from their fit
+        heatmaps: uv (B, N, 2) px of this input, confidence (B, N). No depth, joints, rotation or 3D volume: a
+        box and a presence are all the localizer gives."""
+        if not self.cfg.fit_heatmaps:
+            raise ValueError(f"network '{self.cfg.name}' has no fit heatmaps: its localizer is the full pass")
+        features, skips = self._features(image)
+        head = self.keypoint_head
+        heatmaps = F.conv2d(head.heatmap_features(features, skips), head.fit_out.weight[:head.n],
+                            head.fit_out.bias[:head.n])  # DREAM's keypoints come first among the fit keypoints
+        uv, confidence = decode_heatmaps(heatmaps, image.shape[-1])
+        return {"presence_logit": self.presence(features.mean((2, 3))).squeeze(-1), "uv": uv, "confidence": confidence}
+
+    def forward(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
+        features, skips = self._features(image)
         pooled = features.mean((2, 3))
         if self.depth_backbone is None:
             depth_pooled = pooled
@@ -131,6 +150,18 @@ class HolisticNet(nn.Module):
             "rot6d": r6, "R": rot6d_to_matrix(r6), "presence_logit": self.presence(pooled).squeeze(-1),
             **{k: kp[k] for k in ("heatmap_logits", "fit_uv", "fit_confidence", "mask_logits") if k in kp},
         }
+
+
+class Localizer(nn.Module):
+    """HolisticNet's `localize` pass as a module of its own (the same parameters, not a copy), to export or run
+    apart from the crop pass."""
+
+    def __init__(self, net: HolisticNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.net.localize(image)
 
 
 def example_inputs(size: int, batch: int = 1, device: str | torch.device = "cpu") -> tuple[torch.Tensor, torch.Tensor]:

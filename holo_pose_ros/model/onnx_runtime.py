@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from holo_pose_ros import __version__
-from holo_pose_ros.model.network import HolisticNet, example_inputs
+from holo_pose_ros.model.network import HolisticNet, Localizer, example_inputs
 from holo_pose_ros.model.cards import read_card
 
 LOG = logging.getLogger(__name__)
@@ -32,6 +32,16 @@ def export_onnx(net: HolisticNet, path: str | Path) -> Path:
     with torch.inference_mode():
         names = list(net(*example).keys())  # the forward's output keys name the graph's outputs
     return export_module(net, example, path, INPUTS, names)
+
+
+def export_localizer(net: HolisticNet, size: int, path: str | Path) -> Path:
+    """Write `net`'s 2D-only localize pass (model/network.py Localizer) at an input of `size` px as one ONNX file
+    with the input 'image' and a dynamic batch; like export_onnx, on a CPU copy in eval mode."""
+    localizer = Localizer(copy.deepcopy(net).cpu().eval()).eval()
+    example = (example_inputs(size, batch=2)[0],)
+    with torch.inference_mode():
+        names = list(localizer(*example).keys())
+    return export_module(localizer, example, path, ("image",), names)
 
 
 def export_module(module: torch.nn.Module, example: tuple[torch.Tensor, ...], path: str | Path,
@@ -87,17 +97,22 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "holo_pose_ros" / "onnx"
 
 
-def cached_export(net: HolisticNet, model: str | Path) -> Path:
+def cached_export(net: HolisticNet, model: str | Path, localize_size: int | None = None) -> Path:
     """The ONNX export of `model` (a shipped name or a card/weights path; `net` is its loaded network), made once
     and reused: the file name carries the hash of card and weights and the package version, so new weights or new
-    network code never run a stale graph."""
+    network code never run a stale graph. With `localize_size` (px): the export of its 2D-only localize pass at
+    that input instead."""
     card_path, card = read_card(model)
     digest = hashlib.sha256(card_path.read_bytes())
     digest.update((card_path.parent / card["weights"]).read_bytes())
-    path = cache_dir() / f"{card['robot']}-{card['model']['name']}-{__version__}-{digest.hexdigest()[:16]}.onnx"
+    part = "" if localize_size is None else f"-localize{int(localize_size)}"
+    path = cache_dir() / f"{card['robot']}-{card['model']['name']}{part}-{__version__}-{digest.hexdigest()[:16]}.onnx"
     if not path.is_file():
         LOG.info("exporting %s to ONNX (once): %s", card_path, path)
-        export_onnx(net, path)
+        if localize_size is None:
+            export_onnx(net, path)
+        else:
+            export_localizer(net, int(localize_size), path)
     return path
 
 
@@ -110,7 +125,7 @@ def has_cuda_provider() -> bool:
 
 class OnnxNetwork:
     """An ONNX Runtime session with HolisticNet's call signature: (image (B, 3, S, S) in [0, 1], K_crop (B, 3, 3))
-    -> dict of named torch tensors on the CPU. All graph optimizations on; `threads` intra-op threads (default:
+    -> dict of named torch tensors on the CPU; or its Localizer's, (image,). All graph optimizations on; `threads` intra-op threads (default:
     ONNX Runtime's, one per physical core)."""
 
     def __init__(self, path: str | Path, device: str | torch.device = "cpu", threads: int | None = None):
@@ -125,8 +140,12 @@ class OnnxNetwork:
         self.path = Path(path)
         self.session = session(self.path, threads, providers)
         self.names = [o.name for o in self.session.get_outputs()]
+        self.inputs = [i.name for i in self.session.get_inputs()]
 
-    def __call__(self, image: torch.Tensor, K_crop: torch.Tensor) -> dict[str, torch.Tensor]:
-        feeds = {"image": np.ascontiguousarray(image.detach().cpu().numpy(), dtype=np.float32),
-                 "K_crop": np.ascontiguousarray(K_crop.detach().cpu().numpy(), dtype=np.float32)}
+    def __call__(self, *inputs: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The graph's inputs in order (the network: image, K_crop; its localizer: image)."""
+        if len(inputs) != len(self.inputs):
+            raise ValueError(f"{self.path.name} takes {len(self.inputs)} inputs ({', '.join(self.inputs)}), got {len(inputs)}")
+        feeds = {name: np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float32)
+                 for name, x in zip(self.inputs, inputs)}
         return {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feeds))}

@@ -69,6 +69,9 @@ PARAMETERS: ParameterSpecs = {
             "feed-forward estimate; auto: the model card's validated choice).", False, {}),
     "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (20-30 ms a "
               "frame more; auto: the model card's validated choice).", False, {}),
+    "localize_size": ("Input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
+                      "keypoints); 0: the full network at the crop's size; -1: the model card's choice.", True,
+                      dict(integer_range=[IntegerRange(from_value=-1, to_value=1024)])),
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
     "max_image_pixels": ("Images with more pixels (width x height) are rejected.", True, _PIXELS),
@@ -243,7 +246,8 @@ class EstimatorNode(Node):
                                    f"then reused from {cache_dir()}")
         self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
                                               tracking=p["tracking"], min_confidence=p["min_confidence"],
-                                              fit=_fit_mode(p["fit"]), parts=_fit_mode(p["parts"], "parts"))
+                                              fit=_fit_mode(p["fit"]), parts=_fit_mode(p["parts"], "parts"),
+                                              localize_size=None if p["localize_size"] < 0 else p["localize_size"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
             raise ValueError(f"model '{p['model']}' estimates robot '{robot.name}', but robot:={p['robot']}")
