@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "default: the model card's validated choice)")
     e.add_argument("--localize-size", type=int, default=None, metavar="PX",
                    help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
-                        "keypoints); 0: the full network at the crop's size (default: the model card's choice)")
+                        "keypoints); 0: the full network pass (default: the model card's choice, else the crop's size)")
     e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
                                                          "lifter, fitted, and fitted with the true joints")
     e.add_argument("--depth-diagnostics", action=argparse.BooleanOptionalAction, default=None,
@@ -370,7 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "default: the model card's validated choice)")
     m.add_argument("--localize-size", type=int, default=None, metavar="PX",
                    help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
-                        "keypoints); 0: the full network at the crop's size (default: the model card's choice)")
+                        "keypoints); 0: the full network pass (default: the model card's choice, else the crop's size)")
     m.add_argument("--tracking", action="store_true", help="crop from the previous frame: one network pass a frame")
     m.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     m.add_argument("--json", default=None, help="write the figures to this JSON file")

@@ -63,6 +63,20 @@ class Detection:
     image_size: tuple[int, int] | None = None  # (W, H) pixels of the image it was detected in
 
 
+def localize_pass_size(net: HolisticNet, localize_size: int | None) -> int | None:
+    """The input (px) of the 2D-only localize pass for `localize_size` (None: the crop's size), or None where the
+    whole-image pass is the full network (0, or a network without fit heatmaps, which has no 2D-only pass)."""
+    if localize_size == 0 or (localize_size is None and not net.cfg.fit_heatmaps):
+        return None
+    size = net.cfg.input_size if localize_size is None else int(localize_size)
+    if size < 32 or size % 32:
+        raise ValueError(f"localize_size must be a positive multiple of 32 px, or 0 (got {localize_size})")
+    if not net.cfg.fit_heatmaps:
+        raise ValueError(f"localize_size: the network '{net.cfg.name}' has no fit heatmaps, so no 2D-only localize "
+                         "pass (leave localize_size unset)")
+    return size
+
+
 class Estimator:
     """Holistic robot pose from raw RGB images. `tracking` reuses the previous frame's fitted keypoints for the
     crop (one network pass a frame) and its pose as one more start of the fit; it re-localizes when the robot is
@@ -84,9 +98,10 @@ class Estimator:
     crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
     (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
     chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss.
-    With `localize_size` (px, a multiple of 32; off unless asked or its card's `estimator.localize_size` says so)
-    the whole-image pass is the network's 2D-only `localize` at that input (`localizer`: what runs it, e.g. its
-    ONNX export): presence and DREAM's keypoints, no depth, joints or 3D volume, at a lower resolution."""
+    The whole-image pass is the network's 2D-only `localize` (presence and DREAM's keypoints from their fit heatmaps;
+    no depth, joints or 3D volume: the same box and presence as the full pass, for less) at `localize_size` px (a
+    multiple of 32; None: the crop's size; `localizer`: what runs it, e.g. its ONNX export); 0, or a network without
+    fit heatmaps: the full network pass."""
 
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
@@ -102,15 +117,8 @@ class Estimator:
         self.backend = backend
         self.robot = robot if robot.device == self.device else RobotModel(robot.spec, device=self.device)
         self.size = net.cfg.input_size
-        self.localize_size = None if localize_size is None else int(localize_size)
-        self.localizer = None
-        if self.localize_size is not None:
-            if self.localize_size < 32 or self.localize_size % 32:
-                raise ValueError(f"localize_size must be a positive multiple of 32 px (got {localize_size})")
-            if not net.cfg.fit_heatmaps:
-                raise ValueError(f"localize_size: the network '{net.cfg.name}' has no fit heatmaps, so no 2D-only "
-                                 "localize pass (leave localize_size unset)")
-            self.localizer = localizer or Localizer(self.net)
+        self.localize_size = localize_pass_size(net, localize_size)
+        self.localizer = None if self.localize_size is None else localizer or Localizer(self.net)
         self.min_confidence, self.tracking = min_confidence, tracking
         self.lifter = lifter
         self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
@@ -136,7 +144,7 @@ class Estimator:
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
         network's ONNX export (made once, cached) with `threads` intra-op threads. The card's `estimator` section sets
-        `fit`, `silhouette`, `parts` and `localize_size` unless given (`localize_size=0`: the full pass). A card that names no lifter (a training run's card) fits with the robot's
+        `fit`, `silhouette`, `parts` and `localize_size` unless given. A card that names no lifter (a training run's card) fits with the robot's
         shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
@@ -149,8 +157,6 @@ class Estimator:
                 kwargs[key] = bool(validated)
         if kwargs.get("localize_size") is None:
             kwargs["localize_size"] = (card.get("estimator") or {}).get("localize_size")
-        if kwargs["localize_size"] == 0:  # 0: the full network pass, whatever the card says
-            kwargs["localize_size"] = None
         if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model
             from holo_pose_ros.model.lifter import load_lifter, shipped_lifter
@@ -164,8 +170,9 @@ class Estimator:
             from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cached_export
 
             network = OnnxNetwork(cached_export(net, model), device, threads)
-            if kwargs["localize_size"] is not None:
-                kwargs["localizer"] = OnnxNetwork(cached_export(net, model, kwargs["localize_size"]), device, threads)
+            size = localize_pass_size(net, kwargs["localize_size"])
+            if size is not None:
+                kwargs["localizer"] = OnnxNetwork(cached_export(net, model, size), device, threads)
         return cls(net, robot, device, network=network, backend=backend, **kwargs)
 
     def reset(self) -> None:

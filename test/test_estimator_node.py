@@ -190,7 +190,9 @@ def test_the_localizer_size_parameter_reaches_the_estimator(graphs, card, frame)
     reference = Estimator.from_model(card, "cpu", backend="onnxruntime", min_confidence=0.0,
                                      localize_size=32).estimate(image, K)
     np.testing.assert_allclose(g.stamped("joint_states", 3001)[0].position, reference.joints, atol=1e-4)
-    assert graphs().node.estimator.localizer is None  # -1: the card's choice, which names none
+    default = graphs().node.estimator  # -1: the card's choice; it names none, so the crop's size
+    assert default.localizer is not None and default.localize_size == default.size
+    assert graphs(localize_size=0).node.estimator.localizer is None  # the full pass
 
 
 def raw_image(height: int, width: int, encoding: str, step: int, data: bytes, stamp: Header) -> Image:

@@ -1,5 +1,5 @@
 """The light localizer (issue 30): the whole-image pass of detection run 2D-only (presence and DREAM's keypoints
-from their fit heatmaps), optionally at a lower input than the crop's. At the crop's size it is the full pass's
+from their fit heatmaps; the default), optionally at a lower input than the crop's. At the crop's size it is the full pass's
 2D output exactly, for both heads; at a lower size the shipped model still finds the robot and bounds it; its ONNX
 export computes what torch computes; bad sizes and networks without fit heatmaps are refused."""
 
@@ -51,9 +51,9 @@ def test_the_localize_pass_at_the_crop_size_is_the_full_passs_2d_output(config):
 
 def test_the_shipped_model_finds_and_bounds_the_robot_at_a_lower_input(frames):
     full = Estimator.from_model("panda", localize_size=0)
-    same = Estimator.from_model("panda", localize_size=full.size)
+    same = Estimator.from_model("panda")  # the default: 2D-only at the crop's size
     light = Estimator.from_model("panda", localize_size=160)
-    assert full.localizer is None and light.localize_size == 160
+    assert full.localizer is None and same.localize_size == full.size and light.localize_size == 160
     for image, K in frames:
         H, W = image.shape[:2]
         p_full, uv_full = full.localize(image, K)
@@ -97,3 +97,4 @@ def test_bad_localizer_sizes_and_networks_without_fit_heatmaps_are_refused(small
         net.localize(torch.rand(1, 3, 64, 64))
     with pytest.raises(ValueError, match="no fit heatmaps"):
         Estimator(net, robot, localize_size=32)
+    assert Estimator(net, robot).localizer is None  # such a network localizes with its full pass

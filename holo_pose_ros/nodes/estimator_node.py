@@ -70,7 +70,7 @@ PARAMETERS: ParameterSpecs = {
     "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (20-30 ms a "
               "frame more; auto: the model card's validated choice).", False, {}),
     "localize_size": ("Input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
-                      "keypoints); 0: the full network at the crop's size; -1: the model card's choice.", True,
+                      "keypoints); 0: the full network pass; -1: the model card's choice, else the crop's size.", True,
                       dict(integer_range=[IntegerRange(from_value=-1, to_value=1024)])),
     "publish_annotated": ("Publish ~/annotated (skeleton drawn over the image) while someone subscribes.", False, {}),
     "publish_tf": ("Also broadcast the transform on /tf (needs tf2_msgs, i.e. a ROS distribution).", False, {}),
