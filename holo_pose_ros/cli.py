@@ -200,13 +200,23 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from holo_pose_ros.model.onnx_runtime import cached_export, export_onnx
+    from holo_pose_ros.estimator import localize_pass_size
+    from holo_pose_ros.model.onnx_runtime import cached_export, export_localizer, export_onnx
     from holo_pose_ros.model.weights import load_model
 
-    net, _, _ = load_model(args.model)
-    path = export_onnx(net, args.out) if args.out else cached_export(net, args.model)
-    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, opset 18, dynamic batch; inputs image (B, 3, "
-          f"{net.cfg.input_size}, {net.cfg.input_size}) in [0, 1] and K_crop (B, 3, 3))")
+    net, _, card = load_model(args.model)
+    if args.localizer is None:
+        path = export_onnx(net, args.out) if args.out else cached_export(net, args.model)
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, opset 18, dynamic batch; inputs image (B, 3, "
+              f"{net.cfg.input_size}, {net.cfg.input_size}) in [0, 1] and K_crop (B, 3, 3))")
+        return 0
+    chosen = (card.get("estimator") or {}).get("localize_size") if args.localizer == -1 else args.localizer
+    size = localize_pass_size(net, chosen)
+    if size is None:
+        raise ValueError(f"{args.model}: its whole-image pass is the full network (export it without --localizer)")
+    path = export_localizer(net, size, args.out) if args.out else cached_export(net, args.model, size)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, opset 18, dynamic batch; input image (B, 3, {size}, "
+          f"{size}) in [0, 1]; outputs presence_logit (B,), DREAM's keypoints uv (B, N, 2) px and confidence (B, N))")
     return 0
 
 
@@ -385,6 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--model", required=True, help="shipped model name (panda) or model card / weights path")
     x.add_argument("--format", default="onnx", choices=["onnx"], help="export format")
     x.add_argument("--out", default=None, help="ONNX path (default: the cache the onnxruntime backend reads)")
+    x.add_argument("--localizer", type=int, nargs="?", const=-1, default=None, metavar="PX",
+                   help="export the 2D-only whole-image pass instead, at PX (default: the card's choice, else the "
+                        "crop's size)")
     x.set_defaults(func=_cmd_export)
     return parser
 

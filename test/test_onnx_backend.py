@@ -94,6 +94,13 @@ def test_export_command_writes_a_valid_onnx_file(tmp_path, small_model_card, cap
     assert [i.name for i in model.graph.input] == ["image", "K_crop"]
     assert "joints" in [o.name for o in model.graph.output]
     assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    localizer = tmp_path / "small_localizer.onnx"
+    assert main(["export", "--model", str(small_model_card), "--localizer", "32", "--out", str(localizer)]) == 0
+    model = onnx.load(str(localizer))
+    onnx.checker.check_model(model)
+    assert [i.name for i in model.graph.input] == ["image"]
+    assert [o.name for o in model.graph.output] == ["presence_logit", "uv", "confidence"]
+    assert model.graph.input[0].type.tensor_type.shape.dim[2].dim_value == 32
 
 
 def test_unknown_backend_is_refused(small_model_card):
