@@ -180,15 +180,18 @@ class Estimator:
         self._previous = None
 
     @torch.inference_mode()
-    def _network(self, image: np.ndarray, K: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> dict:
-        """One network pass on the crop `box` of `image` (batch of 1); adds to the 'crop' and 'network' timings."""
+    def _pass(self, run: Callable, image: np.ndarray, box: np.ndarray, size: int, timings: dict[str, float],
+              K: np.ndarray | None = None) -> dict:
+        """One pass of `run` on the S x S crop `box` of `image` (batch of 1): the network, given the image's K (the
+        crop's intrinsics go in with the crop), or the localizer; adds to the 'crop' and 'network' timings."""
         t0 = time.perf_counter()
-        K_crop = crop_affine(box, self.size) @ K
         # numpy, not torch: a torch op here would wait for cores that ONNX Runtime's threads spin on after a pass
-        crop = crop_image(image, box, self.size).transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1 / 255)
-        x = torch.from_numpy(crop).to(self.device)
+        crop = crop_image(image, box, size).transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1 / 255)
+        inputs = [torch.from_numpy(crop).to(self.device)]
+        if K is not None:
+            inputs.append(torch.from_numpy((crop_affine(box, size) @ K)[None].astype(np.float32)).to(self.device))
         t1 = time.perf_counter()
-        out = self.network(x, torch.from_numpy(K_crop[None].astype(np.float32)).to(self.device))
+        out = run(*inputs)
         t2 = time.perf_counter()
         timings["crop"] = timings.get("crop", 0.0) + (t1 - t0) * 1e3
         timings["network"] = timings.get("network", 0.0) + (t2 - t1) * 1e3
@@ -213,30 +216,18 @@ class Estimator:
         box = full_image_box(image.shape[1], image.shape[0])
         timings = {} if timings is None else timings
         if self.localizer is not None:
-            return self._localize_light(image, box, timings)
-        out = self._network(image, K, box, timings)
-        uv, confidence = self._keypoints_2d(out, box)
+            out = self._pass(self.localizer, image, box, self.localize_size, timings)
+            uv = _apply(np.linalg.inv(crop_affine(box, self.localize_size)), out["uv"][0].double().cpu().numpy())
+            confidence = out["confidence"][0].double().cpu().numpy()
+        else:
+            out = self._pass(self.network, image, box, self.size, timings, K)
+            uv, confidence = self._keypoints_2d(out, box)
         uv = uv[:self.robot.n_keypoints]  # the fit keypoints list DREAM's first
         if confidence is not None:
             confident = confidence[:self.robot.n_keypoints] >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
             if confident.sum() >= 2:
                 uv = uv[confident]
         return float(torch.sigmoid(out["presence_logit"][0])), uv
-
-    @torch.inference_mode()
-    def _localize_light(self, image: np.ndarray, box: np.ndarray, timings: dict[str, float]) -> tuple[float, np.ndarray]:
-        """`localize` through the 2D-only localizer at `localize_size`; adds to the 'crop' and 'network' timings."""
-        t0 = time.perf_counter()
-        crop = crop_image(image, box, self.localize_size).transpose(2, 0, 1)[None].astype(np.float32) * np.float32(1 / 255)
-        x = torch.from_numpy(crop).to(self.device)
-        t1 = time.perf_counter()
-        out = self.localizer(x)
-        t2 = time.perf_counter()
-        timings["crop"] = timings.get("crop", 0.0) + (t1 - t0) * 1e3
-        timings["network"] = timings.get("network", 0.0) + (t2 - t1) * 1e3
-        uv = _apply(np.linalg.inv(crop_affine(box, self.localize_size)), out["uv"][0].double().cpu().numpy())
-        confident = out["confidence"][0].double().cpu().numpy() >= LOCALIZE_MIN_KEYPOINT_CONFIDENCE
-        return float(torch.sigmoid(out["presence_logit"][0])), uv[confident] if confident.sum() >= 2 else uv
 
     def _keypoints_2d(self, out: dict, box: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Image-pixel 2D keypoints of one pass on `box`: the fit keypoints' heatmap peaks and confidences (M,),
@@ -262,7 +253,7 @@ class Estimator:
             if presence < self.min_confidence:
                 return None
         box = crop_box_from_keypoints(uv_hint, W, H, CROP_MARGIN)
-        out = self._network(image, K, box, timings)
+        out = self._pass(self.network, image, box, self.size, timings, K)
         uv, confidence = self._keypoints_2d(out, box)
         if confidence is None:  # no fit heatmaps: DREAM's keypoints are the only evidence, the rest weigh 0
             M = self.robot.n_fit_keypoints

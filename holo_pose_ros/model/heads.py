@@ -86,7 +86,6 @@ at zero, so a network warm-started without them computes the same function at fi
             out["mask_logits"] = self.mask_out(deconvolved)
         return out
 
-
     def heatmap_features(self, features: torch.Tensor, skips: list[torch.Tensor] | None = None) -> torch.Tensor:
         """The deconvolved map (B, C, S/4, S/4) that every output reads; any crop size S that is a multiple of 32
         (the localizer's lower-resolution pass reads only this and the fit heatmaps)."""
@@ -144,7 +143,6 @@ class PyramidHead(nn.Module):
         if self.mask_out is not None:
             out["mask_logits"] = self.mask_out(stride4)
         return out
-
 
     def _levels(self, features: torch.Tensor, skips: list[torch.Tensor]) -> list[torch.Tensor]:
         """The merged, refined maps at strides 16, 8 and 4."""
