@@ -361,7 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--info-topic", default=None, help="bag CameraInfo topic (default: the bag's only one)")
     a.add_argument("--limit", type=int, default=None, help="only the first N images")
     a.add_argument("--config", default=None, help="YAML merged over config/adapt.yaml")
-    a.add_argument("--plots", default=None, help="folder for before/after frames and the consistency-loss curve")
+    a.add_argument("--plots", default=None, help="folder for before/after frames and the fine-tuning's loss curves")
     a.add_argument("--seed", type=int, default=0, help="random seed of crops and batches")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.set_defaults(func=_cmd_adapt)

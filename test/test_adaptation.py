@@ -16,21 +16,32 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 from safetensors.torch import load_file
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from holo_pose_ros.adaptation.sources import AdaptationInputError, read_camera_info_yaml, read_source
+from holo_pose_ros.adaptation.adapt import load_adapt_config
+from holo_pose_ros.adaptation.finetune import LOSS_NAMES, finetune, render_synthetic
+from holo_pose_ros.adaptation.pseudo_labels import PseudoLabel
+from holo_pose_ros.adaptation.silhouettes import SilhouetteRenderer
+from holo_pose_ros.adaptation.sources import AdaptationInputError, SourceFrame, read_camera_info_yaml, read_source
 from holo_pose_ros.bags import (CAMERA_INFO_MSGTYPE, IMAGE_MSGTYPE, _BagOut, _writer, dream_to_bag, frame_stamp_ns,
                                 jazzy_typestore)
 from holo_pose_ros.cli import main as cli_main
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
+from holo_pose_ros.data.render import DISTRACTOR_LABEL, robot_foreground
 from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.geometry.camera import in_image, project
+from holo_pose_ros.geometry.crop import crop_affine, crop_box_from_keypoints, crop_image
+from holo_pose_ros.model.network import HolisticNet, load_model_config
+from holo_pose_ros.robots.kinematics import RobotModel
 from holo_pose_ros.resources import weights_dir
 from msg_adapters import camera_info_from_K, make_header, rgb_to_image
 from test_estimator_node import Graph, camera_info_msg, header
+from test_localizer import PYRAMID_SMALL
 
 ROOT = Path(__file__).resolve().parent.parent
 JOINTS_TOPIC = "/dream_replay/ground_truth/joint_states"  # dream-to-bag's ground truth: the robot's joint states
@@ -75,6 +86,7 @@ def test_images_alone_adapt_a_model_that_changes_only_what_adaptation_trains(ada
     a = card["adaptation"]
     assert a["source_kind"] == "dream" and a["n_images"] == 8 and not a["joint_states"]
     assert a["n_pseudo_labels"] >= 2 and a["finetune_steps"] == 3 and "source_figures" not in a  # no labels to score
+    assert set(a["losses"]) == {"keypoint consistency", "rendered views"}  # no segmentation head: no mask term
     parent = load_file(str(weights_dir() / "panda.safetensors"))
     assert a["parent_sha256"] == yaml.safe_load((weights_dir() / "panda.yaml").read_text())["weights_sha256"]
     child = load_file(str(adapted.with_suffix(".safetensors")))
@@ -247,6 +259,56 @@ def test_by_default_only_the_batchnorm_statistics_change(unlabelled, tmp_path):
     child = load_file(str(out / "model.safetensors"))
     changed = {k for k in parent if not np.array_equal(parent[k].numpy(), child[k].numpy())}
     assert changed and all(k.endswith(("running_mean", "running_var")) for k in changed), sorted(changed)[:5]
+
+
+def test_the_mask_targets_are_the_silhouette_the_generator_drew(unlabelled):
+    reader = DreamReader(unlabelled[1], "panda")
+    silhouettes = SilhouetteRenderer("panda", 224)
+    for frame in list(reader)[:3]:
+        labels = cv2.imread(str(frame.mask_path), cv2.IMREAD_UNCHANGED)
+        centre = np.round(frame.keypoints_2d[frame.in_image].mean(0))
+        box = np.array([centre[0] - 112, centre[1] - 112, 224.0])  # a 1:1 crop: the generator's mask only shifts
+        target = silhouettes(frame.joints, frame.T_cam_base, crop_affine(box, 224) @ frame.K, box, frame.width,
+                             frame.height)
+        drawn = crop_image(robot_foreground(labels).astype(np.uint8) * 255, box, 224) > 127
+        seen = crop_image((labels != DISTRACTOR_LABEL).astype(np.uint8) * 255, box, 224) > 127  # not occluded
+        iou = (target & drawn & seen).sum() / ((target | drawn) & seen).sum()
+        assert drawn.sum() > 500 and iou > 0.97, (frame.name, iou)
+
+
+def _true_pseudo_labels(folder: Path, robot: RobotModel, n: int) -> tuple[list[SourceFrame], list[PseudoLabel]]:
+    """The first `n` labelled frames as source frames and pseudo-labels of their true pose (a perfect fit)."""
+    reader = DreamReader(folder, robot.name)
+    frames, labels = [], []
+    for i, f in enumerate(list(reader)[:n]):
+        frames.append(SourceFrame(f.name, reader.load_image(f), f.K))
+        with torch.inference_mode():
+            points = robot.fit_keypoints_in_camera(torch.as_tensor(f.joints[None], dtype=robot.dtype),
+                                                   torch.as_tensor(f.T_cam_base[None], dtype=robot.dtype))[0]
+        uv = project(points.double().numpy(), f.K)
+        box = crop_box_from_keypoints(f.keypoints_2d[f.in_image], f.width, f.height)
+        labels.append(PseudoLabel(i, f.joints, f.T_cam_base, uv, in_image(uv, f.width, f.height),
+                                  float(f.keypoints_3d[0, 2]), box, 1.0, 0.0))
+    return frames, labels
+
+
+def test_mask_consistency_trains_a_segmentation_head_towards_the_fitted_silhouette(unlabelled):
+    robot = RobotModel("panda")
+    frames, labels = _true_pseudo_labels(unlabelled[1], robot, 2)
+    synthetic = render_synthetic("panda", PYRAMID_SMALL["input_size"], "randomized", 2, seed=3, progress=False)
+    cfg = {**load_adapt_config()["finetune"], "steps": 15, "lr": 1.0e-2, "batch_size": 2, "synthetic_batch_size": 2}
+    assert cfg["mask_consistency_weight"] > 0  # on by default whenever fine-tuning runs on a network with a mask
+    torch.manual_seed(0)
+    net = HolisticNet(load_model_config(PYRAMID_SMALL), robot).eval()
+    before = net.keypoint_head.mask_out.weight.detach().clone()
+    result = finetune(net, robot, frames, labels, synthetic, cfg, seconds=600.0, progress=False)
+    assert set(result.history) == set(LOSS_NAMES) and result.steps == 15
+    mask = result.history["mask consistency"]
+    assert np.isfinite(mask).all() and mask[-3:].mean() < mask[:3].mean()  # it learns the rendered silhouettes
+    assert not torch.equal(before, net.keypoint_head.mask_out.weight)
+    off = finetune(net, robot, frames, labels, synthetic, {**cfg, "steps": 1, "mask_consistency_weight": 0.0},
+                   seconds=600.0, progress=False)
+    assert set(off.history) == {"keypoint consistency", "rendered views"}
 
 
 def test_a_swallowed_ctrl_c_still_stops_the_fine_tuning_loop():

@@ -5,7 +5,9 @@ joint states, on the CPU. In order (config/adapt.yaml):
   3. when `finetune.steps` > 0 (off by default: measured, it did not pay; docs/adaptation.md): pseudo-labels
      from the re-normalized model's own fits (pseudo_labels.py), with the joint states when the source has them,
      kept where they are confident and two looks agree, then keypoint consistency (finetune.py): the heatmaps
-     trained towards those labels, rendered labelled views in every step, for what is left of `minutes`.
+     trained towards those labels, and mask consistency for a network with a segmentation head (its mask towards
+     the rendered silhouette of the label's pose), rendered labelled views in every step, for what is left of
+     `minutes`.
 The model (weights, card, its lifter) is written to a temporary folder and renamed to `out` when complete, so an
 interrupted run leaves no half-written model; bad input raises AdaptationInputError and writes nothing."""
 
@@ -169,8 +171,8 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
         "parent": str(parent_path), "parent_sha256": file_sha256(parent_path.parent / read_card(model)[1]["weights"]),
         "minutes": round(seconds / 60.0, 2), "minutes_budget": minutes,
         "finetune_steps": 0 if tuned is None else tuned.steps,
-        "consistency_loss": None if tuned is None else {"first": round(tuned.consistency_first, 4),
-                                                        "last": round(tuned.consistency_last, 4)},
+        "losses": None if tuned is None else {name: {"first": round(tuned.first(name), 4),
+                                                     "last": round(tuned.last(name), 4)} for name in tuned.history},
         "config": cfg, **({"command": command} if command else {}),
         **({"skipped": dict(source.skipped)} if source.skipped else {}),
     }
@@ -188,9 +190,8 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
         after = [_estimated_uv(estimator, frames[i]) for i in shown]
         plot_before_after([frames[i].image for i in shown], before, after, estimator.robot.keypoint_parents,
                           plots / "before_after.png", [frames[i].name for i in shown])
-        if tuned is not None and len(tuned.history):
-            plot_loss_curves({"keypoint consistency (your images)": tuned.history[:, 0],
-                              "supervised (rendered views)": tuned.history[:, 1]}, plots / "losses.png")
+        if tuned is not None and tuned.steps:
+            plot_loss_curves(tuned.history, plots / "losses.png")
     return AdaptResult(card, source, n_found, len(candidates), labels, tuned, seconds, figures)
 
 
@@ -229,9 +230,8 @@ def format_adaptation(result: AdaptResult) -> str:
         lines.append("skipped: " + ", ".join(f"{n} {why}" for why, n in result.source.skipped.items()))
     if result.finetune is not None:
         f = result.finetune
-        lines.append(f"fine-tuned {f.steps} steps in {f.seconds / 60:.1f} min: keypoint consistency "
-                     f"{f.consistency_first:.3f} -> {f.consistency_last:.3f}, rendered views {f.synthetic_first:.3f} "
-                     f"-> {f.synthetic_last:.3f}")
+        lines.append(f"fine-tuned {f.steps} steps in {f.seconds / 60:.1f} min: " + ", ".join(
+            f"{name} {f.first(name):.3f} -> {f.last(name):.3f}" for name in f.history))
     for name, figures in result.figures.items():
         lines.append(f"{name} on the source frames: AUC {figures.get('add_auc', float('nan')):.1f}, mean ADD "
                      f"{figures.get('add_mean_mm', float('nan')):.0f} mm, fit keypoints "

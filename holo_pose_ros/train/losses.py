@@ -26,6 +26,14 @@ def project_batch(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return p[..., :2] / p[..., 2:3].clamp(min=0.01)
 
 
+def mask_loss(mask_logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy of the (B, 1, h, w) robot-foreground logits against each cell's robot fraction of the
+    (B, S, S) bool mask at the input's resolution (training views' masks and adaptation's rendered silhouettes)."""
+    logits = mask_logits[:, 0].float()
+    target = F.adaptive_avg_pool2d(mask.float()[:, None], logits.shape[-2:])[:, 0]
+    return F.binary_cross_entropy_with_logits(logits, target)
+
+
 def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], joint_mid: torch.Tensor,
                       joint_half: torch.Tensor, crop_size: int, heatmap_sigma: float = 1.0) -> dict[str, torch.Tensor]:
     """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets.
@@ -49,9 +57,7 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
         cell_px = crop_size / logits.shape[-1]
         extra["fit_coord"] = _masked_mean((expected_positions(logits, crop_size) - batch["uv_fit"]).abs().sum(-1) / cell_px, seen)
     if "mask_logits" in out:
-        mask_logits = out["mask_logits"][:, 0].float()
-        target = F.adaptive_avg_pool2d(batch["mask"].float()[:, None], mask_logits.shape[-2:])[:, 0]  # robot fraction of each cell
-        extra["mask"] = F.binary_cross_entropy_with_logits(mask_logits, target)
+        extra["mask"] = mask_loss(out["mask_logits"], batch["mask"])
     return {**extra,
         "joints": _masked_mean(F.smooth_l1_loss(out["joints_norm"], gt_norm, reduction="none", beta=0.1), crop),
         "rotation": _masked_mean((out["R"] - batch["R_root"]).square().sum((1, 2)), crop),
