@@ -1,6 +1,6 @@
-"""Regenerate docs/learning_curve.png and the README's learning-curve table from the training logs.
+"""Regenerate docs/learning_curve.png and the learning-curve table of docs/campaign.md from the training logs.
 
-    python scripts/learning_curve.py            # docs/training_logs/*.csv -> docs/learning_curve.png + README table
+    python scripts/learning_curve.py            # docs/training_logs/*.csv -> docs/learning_curve.png + the table
 
 Each training run's `log.csv` (runs/<name>/log.csv) is copied into docs/training_logs/<name>.csv when its model
 ships, so the curve survives the run folder. One line per robot: validation median 2D error of the network's
@@ -114,7 +114,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", default=str(ROOT / "docs" / "training_logs"), help="folder of <run>.csv logs")
     parser.add_argument("--out", default=str(ROOT / "docs" / "learning_curve.png"))
-    parser.add_argument("--readme", default=str(ROOT / "README.md"))
+    parser.add_argument("--page", default=str(ROOT / "docs" / "campaign.md"),
+                        help="the Markdown page whose learning-curve block is rewritten")
     parser.add_argument("--trend-runs", type=int, default=3, help="runs of the current recipe the power law goes through")
     parser.add_argument("--target-px", type=float, default=3.0, help="fit-keypoint error the projection is for (px)")
     args = parser.parse_args()
@@ -183,13 +184,13 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")
-    readme = Path(args.readme)
-    text = readme.read_text()
+    page = Path(args.page)
+    text = page.read_text()
     if BEGIN in text and END in text:
         head, rest = text.split(BEGIN, 1)
         _, tail = rest.split(END, 1)
-        readme.write_text(head + BEGIN + "\n" + "\n".join(table) + "\n" + END + tail)
-        print(f"updated the table in {readme}")
+        page.write_text(head + BEGIN + "\n" + "\n".join(table) + "\n" + END + tail)
+        print(f"updated the table in {page}")
     print("\n".join(table))
 
 

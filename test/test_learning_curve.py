@@ -1,4 +1,4 @@
-"""scripts/learning_curve.py on training logs written here: it draws the figure, rewrites only the README's
+"""scripts/learning_curve.py on training logs written here: it draws the figure, rewrites only its page's
 learning-curve block, and its power law through the current recipe's runs recovers the exponent and the views to
 the target that the logs were made with (runs of an older recipe left out)."""
 
@@ -37,15 +37,15 @@ def test_curve_table_and_power_law(tmp_path):
         views = [start * 1.2, start * 1.5, start * 1.8]
         px = [law(v) * 1.1 for v in views[:-1]] + [law(views[-1])]     # each run's kept point is its last
         write_run(logs, f"kuka_new_cpu{run}", views, px)
-    readme = tmp_path / "README.md"
-    readme.write_text("# title\n<!-- learning-curve:begin -->\nold table\n<!-- learning-curve:end -->\nafter\n")
+    page = tmp_path / "campaign.md"
+    page.write_text("# title\n<!-- learning-curve:begin -->\nold table\n<!-- learning-curve:end -->\nafter\n")
     out = tmp_path / "curve.png"
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "learning_curve.py"), "--logs", str(logs),
-                          "--out", str(out), "--readme", str(readme), "--trend-runs", "3"],
+                          "--out", str(out), "--page", str(page), "--trend-runs", "3"],
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     assert out.stat().st_size > 10_000 and out.read_bytes()[:4] == b"\x89PNG"
-    text = readme.read_text()
+    text = page.read_text()
     assert text.startswith("# title\n<!-- learning-curve:begin -->\n| run |") and text.endswith("-->\nafter\n")
     assert "old table" not in text and text.count("| kuka_new_cpu") == 8     # best and last row of each run
     trend = next(line for line in text.splitlines() if line.startswith("- kuka"))
