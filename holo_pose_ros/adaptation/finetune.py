@@ -1,10 +1,10 @@
 """Keypoint and mask consistency on the user's images (the paper's self-supervision): the fit-keypoint heatmaps
 are trained towards the projection of the fitted kinematics (the pseudo-labels), which is a robot by construction
 where the heatmaps are only evidence, and a network with a segmentation head has its mask trained towards the
-silhouette our renderer draws at the fitted pose (silhouettes.py). Guarded against drift, as the adaptation probe of December 2026 showed it
-must be: only the named modules train (by default the keypoint head), every BatchNorm layer keeps the statistics
-of the user's images (the network stays in eval mode), the learning rate is small, and every step also trains
-on rendered views with their true labels and the full supervised loss."""
+silhouette our renderer draws at the fitted pose (silhouettes.py). Guarded against drift, as the adaptation probe
+of December 2026 showed it must be: only the named modules train (by default the keypoint head), every BatchNorm
+layer keeps the statistics of the user's images (the network stays in eval mode), the learning rate is small, and
+every step also trains on rendered views with their true labels and the full supervised loss."""
 
 from __future__ import annotations
 
