@@ -283,8 +283,8 @@ def _true_pseudo_labels(folder: Path, robot: RobotModel, n: int) -> tuple[list[S
     for i, f in enumerate(list(reader)[:n]):
         frames.append(SourceFrame(f.name, reader.load_image(f), f.K))
         with torch.inference_mode():
-            points = robot.fit_keypoints_in_camera(torch.as_tensor(f.joints[None], dtype=robot.dtype),
-                                                   torch.as_tensor(f.T_cam_base[None], dtype=robot.dtype))[0]
+            points = robot.fit_keypoints_in_camera(torch.tensor(f.joints[None], dtype=robot.dtype),
+                                                   torch.tensor(f.T_cam_base[None], dtype=robot.dtype))[0]
         uv = project(points.double().numpy(), f.K)
         box = crop_box_from_keypoints(f.keypoints_2d[f.in_image], f.width, f.height)
         labels.append(PseudoLabel(i, f.joints, f.T_cam_base, uv, in_image(uv, f.width, f.height),
