@@ -69,7 +69,7 @@ def pseudo_batch(frames: list[SourceFrame], labels: list[PseudoLabel], size: int
         seen.append(label.visible_fit & (uv >= -0.5).all(1) & (uv <= size - 0.5).all(1))
         if silhouettes is not None:
             H, W = frame.image.shape[:2]
-            masks.append(silhouettes(label.joints, label.T_cam_base, A @ frame.K, box, W, H))
+            masks.append(silhouettes(label.joints, label.T_cam_base, K, box, W, H))  # K: the crop's intrinsics
     return (torch.from_numpy(np.stack(images)), torch.from_numpy(np.stack(Ks)), torch.from_numpy(np.stack(uvs)),
             torch.from_numpy(np.stack(seen)), torch.from_numpy(np.stack(masks)) if masks else None)
 
