@@ -12,7 +12,7 @@ from holo_pose_ros.evaluation.report import FrameResult, build_report, format_re
 
 REQUIRED_KEYS = {"n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm",
                  "joint_error_deg", "rotation_error_deg", "depth_error_mm", "reproj_error_px", "keypoint_error_px", "fps",
-                 "truncation", "n_found_for_means"}
+                 "truncation", "apparent_size", "n_found_for_means"}
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -89,6 +89,21 @@ def test_truncation_table_rows_and_counts():
         metrics.truncation_table(add, found, np.array([8, 7, 7, 4, 4]), n_keypoints=7)
 
 
+def test_apparent_size_is_the_in_image_keypoints_box_and_the_size_table_bins_it():
+    uv = np.array([[10.0, 20.0], [130.0, 60.0], [900.0, 900.0]])
+    assert metrics.apparent_size_px(uv, np.array([True, True, False])) == pytest.approx(120.0)
+    assert metrics.apparent_size_px(uv, np.array([True, False, False])) == 0.0  # one point has no extent
+    add = np.array([0.01, 0.03, np.nan, 0.2, 0.05])
+    found = np.array([True, True, False, True, True])
+    rows = metrics.size_table(add, found, np.array([50.0, 120.0, 140.0, 120.0, 400.0]), (0.0, 100.0, 200.0, 300.0, np.inf))
+    assert [(r["min_px"], r["n_frames"], r["n_not_found"]) for r in rows] == [(0.0, 1, 0), (100.0, 3, 1), (300.0, 1, 0)]
+    assert rows[1]["add_mean_mm"] == pytest.approx(115.0)  # the found ones: 30 and 200 mm
+    assert rows[1]["add_auc"] == pytest.approx(metrics.add_auc(add[1:4], found[1:4]))
+    assert rows[0]["add_auc"] > rows[1]["add_auc"]
+    with pytest.raises(ValueError):
+        metrics.size_table(add, found, np.ones(5), (100.0, 50.0))
+
+
 def frame(name: str, offset_m: float | None, n_in: int = 3) -> FrameResult:
     """A 3-keypoint, 2-joint frame; offset_m shifts every predicted keypoint along x (None: not found)."""
     gt = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.2, 0.0, 1.0]])
@@ -125,9 +140,10 @@ def test_build_report_keys_json_and_not_found_frames(tmp_path):
     assert report["fps"] == pytest.approx(20.0)
     assert [r["n_in_image"] for r in report["truncation"]] == [0, 1, 3]
     assert report["truncation"][1]["add_mean_mm"] is None  # the only 1-keypoint frame was not found
+    assert [(r["min_px"], r["n_frames"]) for r in report["apparent_size"]] == [(0.0, 4)]  # every true uv is (0, 0)
     write_report(report, tmp_path / "out" / "report.json")
     assert json.loads((tmp_path / "out" / "report.json").read_text()) == report
-    assert "ADD AUC" in format_report(report)
+    assert "ADD AUC" in format_report(report) and "robot size px" in format_report(report)
 
 
 def test_keypoint_error_is_each_keypoints_median_over_the_frames_where_it_is_in_the_image():

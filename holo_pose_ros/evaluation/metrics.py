@@ -120,3 +120,35 @@ def truncation_table(add_m: np.ndarray, found: np.ndarray | None, n_in_image: np
             "n_not_found": int((sel & ~ok).sum()),
         })
     return rows
+
+
+def apparent_size_px(gt_uv: np.ndarray, in_image: np.ndarray) -> float:
+    """The robot's apparent size in one frame, pixels: the larger side of the bounding box of its in-image
+    ground-truth keypoints (0 with fewer than two in the image)."""
+    uv = np.asarray(gt_uv, float)[np.asarray(in_image, bool)]
+    return float((uv.max(axis=0) - uv.min(axis=0)).max()) if len(uv) >= 2 else 0.0
+
+
+def size_table(add_m: np.ndarray, found: np.ndarray | None, size_px: np.ndarray,
+               edges_px: tuple[float, ...]) -> list[dict]:
+    """One row per apparent-size bin [edges_px[i], edges_px[i+1]) that holds frames (ascending): min_px, max_px,
+    n_frames, add_auc (percent), add_mean_mm over found frames (NaN if none) and n_not_found. A far camera sees a
+    small robot: this says from what size on the estimate is useful."""
+    add_m = np.asarray(add_m, float)
+    ok = _found_mask(add_m, found)
+    size_px = np.asarray(size_px, float)
+    if len(edges_px) < 2 or np.any(np.diff(edges_px) <= 0):
+        raise ValueError(f"size bin edges must be at least two increasing values, got {list(edges_px)}")
+    rows = []
+    for lo, hi in zip(edges_px[:-1], edges_px[1:]):
+        sel = (size_px >= lo) & (size_px < hi)
+        if not sel.any():
+            continue
+        found_add = add_m[sel & ok]
+        rows.append({
+            "min_px": float(lo), "max_px": float(hi), "n_frames": int(sel.sum()),
+            "add_auc": add_auc(add_m[sel], ok[sel]),
+            "add_mean_mm": float(found_add.mean() * 1000.0) if found_add.size else float("nan"),
+            "n_not_found": int((sel & ~ok).sum()),
+        })
+    return rows

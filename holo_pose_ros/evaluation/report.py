@@ -15,6 +15,9 @@ from holo_pose_ros.evaluation import metrics
 from holo_pose_ros.evaluation.depth import format_depth_diagnostics
 
 ADD_THRESHOLDS_MM = (10, 20, 40, 60)
+# bins of the robot's apparent size (px, the larger side of its in-image keypoints' box) in the report's size table;
+# a Panda 1.5 m from a 640x480 camera of 600 px focal length spans about 300 px
+SIZE_BINS_PX = (0.0, 100.0, 150.0, 200.0, 300.0, float("inf"))
 
 
 @dataclass
@@ -139,6 +142,8 @@ def build_report(results: list[FrameResult], joint_names: list[str], joint_types
         "keypoint_error_px": _keypoint_errors(results, keypoint_names),
         "fps": len(results) / seconds if seconds > 0 else float("nan"),
         "truncation": metrics.truncation_table(add, found, n_in_image, len(keypoint_names)),
+        "apparent_size": metrics.size_table(
+            add, found, [metrics.apparent_size_px(r.gt_uv, r.in_image) for r in results], SIZE_BINS_PX),
         "extra": {"n_frames_used": {"joint_error": n_joint, "rotation_error": len(R_pred),
                                     "depth_error": len(depth_pred), "reproj_error": int(np.isfinite(reproj).sum())}},
     }
@@ -165,6 +170,12 @@ def keypoint_error_lines(report: dict, estimate: bool = True) -> list[str]:
             ("network", report.get("kp2d_dream_median_px_per_keypoint"))]
     return [f"2D error, {label:<9} " + "  ".join(f"{n} {_num(v, 1)}" for n, v in zip(names, values)) + " px (median)"
             for label, values in rows if names and values]
+
+
+def _size_bin(row: dict) -> str:
+    """'100-150' or '300+' (an open last bin is null in JSON)."""
+    hi = row["max_px"]
+    return f"{row['min_px']:.0f}+" if hi is None or not math.isfinite(hi) else f"{row['min_px']:.0f}-{hi:.0f}"
 
 
 def format_report(report: dict) -> str:
@@ -196,6 +207,10 @@ def format_report(report: dict) -> str:
     lines.append("in-image kps  frames  not found  ADD AUC  ADD mean mm")
     lines += [f"{row['n_in_image']:>12}  {row['n_frames']:>6}  {row['n_not_found']:>9}  {_num(row['add_auc']):>7}  "
               f"{_num(row['add_mean_mm']):>11}" for row in report["truncation"]]
+    if report.get("apparent_size"):
+        lines.append("robot size px  frames  not found  ADD AUC  ADD mean mm")
+        lines += [f"{_size_bin(row):>13}  {row['n_frames']:>6}  {row['n_not_found']:>9}  {_num(row['add_auc']):>7}  "
+                  f"{_num(row['add_mean_mm']):>11}" for row in report["apparent_size"]]
     if report.get("depth_diagnostics"):
         lines += format_depth_diagnostics(report["depth_diagnostics"])
     return "\n".join(lines)
