@@ -32,7 +32,8 @@ from holo_pose_ros.model.weights import load_model, save_model
 from holo_pose_ros.resources import weights_dir
 
 KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm", "joint_error_deg",
-        "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px")
+        "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px",
+        "depth_diagnostics", "truncation", "apparent_size")
 ROOT = Path(__file__).resolve().parent.parent
 UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
 BY_PARTS = "fitted by parts"  # the validation's fourth row: the fit searched by parts (fitting/parts.py)
@@ -79,29 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                 for m, r in a.items()} for folder, a in ablations.items()}}
         print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
-    metrics = {}
-    for item in args.test:
-        folder, _, look = item.partition(":")
-        reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts)
-        report, _, _ = evaluate_folder(estimator, reader)
-        metrics[look or Path(folder).name] = {
-            "data": _provenance(folder, len(reader)),
-            "command": f"holo-pose evaluate --model {args.name} --data {folder} --out report.json",
-            "method": ("fitted" if estimator.fit else "feed-forward") + (" by parts" if estimator.fit and parts else ""),
-            **{k: report[k] for k in KEPT if k in report},
-        }
-        print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
-              f"not found {report['n_not_found']}/{report['n_frames']}")
-        if lifter is not None:
-            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts), reader)
-            print(format_ablation(ablation))
-            metrics[look or Path(folder).name]["ablation"] = {
-                "command": f"holo-pose evaluate --model {args.name} --data {folder} --ablation",
-                **{method: {k: r[k] for k in ("add_auc", "add_mean_mm", "add_median_mm", "n_not_found")}
-                   | {"joint_error_mean_deg": r["joint_error_deg"]["mean"],
-                      "rotation_error_mean_deg": r["rotation_error_deg"]["mean"]}
-                   for method, r in ablation.items()}}
+    metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test)
     if args.log:
         run = Path(args.card).resolve().parent.name
         (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
@@ -120,6 +99,35 @@ def main(argv: list[str] | None = None) -> int:
                      dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
+
+
+def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, tests: list[str]) -> dict:
+    """The card's `test` section: each DIR:LOOK folder scored through the deployed estimator (the report's KEPT
+    keys, depth diagnostics included) and, with a lifter, its ablation; `name` is the model as users call it."""
+    metrics = {}
+    for item in tests:
+        folder, _, look = item.partition(":")
+        reader = DreamReader(folder, robot)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts)
+        report, _, _ = evaluate_folder(estimator, reader)
+        metrics[look or Path(folder).name] = {
+            "data": _provenance(folder, len(reader)),
+            "command": f"holo-pose evaluate --model {name} --data {folder} --out report.json",
+            "method": ("fitted" if estimator.fit else "feed-forward") + (" by parts" if estimator.fit and parts else ""),
+            **{k: report[k] for k in KEPT if k in report},
+        }
+        print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
+              f"not found {report['n_not_found']}/{report['n_frames']}")
+        if lifter is not None:
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts), reader, depth_diagnostics=False)
+            print(format_ablation(ablation))
+            metrics[look or Path(folder).name]["ablation"] = {
+                "command": f"holo-pose evaluate --model {name} --data {folder} --ablation",
+                **{method: {k: r[k] for k in ("add_auc", "add_mean_mm", "add_median_mm", "n_not_found")}
+                   | {"joint_error_mean_deg": r["joint_error_deg"]["mean"],
+                      "rotation_error_mean_deg": r["rotation_error_deg"]["mean"]}
+                   for method, r in ablation.items()}}
+    return metrics
 
 
 def domain_shift(metrics: dict) -> dict | None:

@@ -1,0 +1,95 @@
+"""The README's table of every shipped model on its three test looks side by side, read from the model cards (what
+scripts/ship_model.py and scripts/rescore_model.py measured): per look the fitted ADD AUC and mean ADD, the
+ablation (feed-forward, fitted, fitted with the true joints), and the depth diagnostics (DepthNet's root depth,
+the fit without the depth prior and the shipped estimate, median signed error in % of the true depth; the
+detected keypoints' median scale about the true centroid). A card that lacks a look or a measure shows "-".
+
+    python scripts/looks_table.py            # rewrites the block between the markers in README.md
+    python scripts/looks_table.py --print    # only prints it
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from holo_pose_ros.model.cards import read_card
+from holo_pose_ros.resources import weights_dir
+
+ROOT = Path(__file__).resolve().parent.parent
+BEGIN, END = "<!-- looks-table:begin -->", "<!-- looks-table:end -->"
+LOOKS = ("randomized", "photo", "unseen")  # the two training looks, then the one no training config names
+MODELS = ("panda", "kuka", "baxter")
+
+
+def _get(section: dict | None, *keys):
+    """section[k0][k1]..., None where any level is missing."""
+    for key in keys:
+        if not isinstance(section, dict) or section.get(key) is None:
+            return None
+        section = section[key]
+    return section
+
+
+def _f(value, spec: str, suffix: str = "") -> str:
+    return "-" if value is None else format(value, spec) + suffix
+
+
+def look_cells(test: dict | None) -> list[str]:
+    """The table's cells of one model on one look (its card's test entry; None: not measured)."""
+    if not test:
+        return ["-"] * 4
+    ablation = test.get("ablation") or {}
+    depth = test.get("depth_diagnostics") or {}
+    error = depth.get("root_depth_error") or {}
+    fitted = _f(test.get("add_auc"), ".1f") + " / " + _f(test.get("add_mean_mm"), ".0f")
+    methods = " / ".join(_f(_get(ablation, m, "add_auc"), ".1f")
+                         for m in ("feed-forward", "fitted", "fitted, known joints"))
+    relative = " / ".join(_f(_get(error, s, "relative_median_percent"), "+.1f")
+                          for s in ("depthnet", "fit_no_prior", "shipped"))
+    scale = _f(_get(depth, "keypoint_scale", "detected", "median"), ".3f")
+    return [fitted, methods, relative, scale]
+
+
+def table(models: tuple[str, ...] = MODELS) -> list[str]:
+    """Markdown lines: one row per shipped model and look."""
+    lines = ["| model | look | fitted AUC / mean ADD mm | ablation AUC: feed-forward / fitted / true joints | "
+             "root depth error %: DepthNet / fit without prior / shipped | detected keypoints' scale |",
+             "|---|---|---|---|---|---|"]
+    for name in models:
+        path = weights_dir() / f"{name}.yaml"
+        if not path.exists():
+            continue
+        _, card = read_card(path)
+        tests = card.get("test") or {}
+        for look in LOOKS:
+            lines.append(f"| `{name}` | {look} | " + " | ".join(look_cells(tests.get(look))) + " |")
+    return lines
+
+
+def rewrite(page: Path, lines: list[str]) -> None:
+    """Replace the block between BEGIN and END in `page` with `lines`."""
+    text = page.read_text()
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"{page}: no {BEGIN} ... {END} block to rewrite")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    page.write_text(head + BEGIN + "\n" + "\n".join(lines) + "\n" + END + tail)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--page", default=str(ROOT / "README.md"), help="the page whose looks-table block is rewritten")
+    parser.add_argument("--print", action="store_true", help="print the table, rewrite nothing")
+    args = parser.parse_args(argv)
+    lines = table()
+    print("\n".join(lines))
+    if not args.print:
+        rewrite(Path(args.page), lines)
+        print(f"updated the table in {args.page}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

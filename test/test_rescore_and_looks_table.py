@@ -1,0 +1,71 @@
+"""scripts/rescore_model.py on a copy of the shipped Panda model and three generated unseen-look frames: the card's
+test section is rewritten with the depth diagnostics and the size and truncation tables, the rest of the card and
+the weights are untouched; scripts/looks_table.py reads such cards into the README's table and rewrites only its
+block."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from holo_pose_ros.data.generator import generate
+from holo_pose_ros.model.cards import file_sha256
+from holo_pose_ros.resources import weights_dir
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import looks_table  # noqa: E402
+
+
+def test_rescore_rewrites_only_the_test_section_with_the_depth_diagnostics(tmp_path):
+    models = tmp_path / "models"
+    models.mkdir()
+    for suffix in ("panda.yaml", "panda.safetensors", "panda_lifter.yaml", "panda_lifter.safetensors"):
+        shutil.copy(weights_dir() / suffix, models / suffix)
+    before = yaml.safe_load((models / "panda.yaml").read_text())
+    generate("panda", 3, tmp_path / "unseen", seed=4242, workers=1, progress=False, config="unseen")
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "rescore_model.py"), str(models / "panda.yaml"),
+                          "--test", f"{tmp_path / 'unseen'}:unseen"], capture_output=True, text=True, cwd=ROOT,
+                         timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    after = yaml.safe_load((models / "panda.yaml").read_text())
+    assert list(after["test"]) == ["unseen"]  # only the looks asked for
+    unseen = after["test"]["unseen"]
+    assert unseen["n_frames"] == 3 and unseen["data"]["look"] == "unseen" and unseen["data"]["seed"] == 4242
+    depth = unseen["depth_diagnostics"]
+    assert set(depth["root_depth_error"]) == {"depthnet", "fit_no_prior", "shipped"}
+    assert depth["root_depth_error"]["depthnet"]["n_frames"] >= 1
+    assert sum(row["n_frames"] for row in unseen["apparent_size"]) == 3
+    assert sum(row["n_frames"] for row in unseen["truncation"]) == 3
+    assert {"feed-forward", "fitted", "fitted, known joints"} <= set(unseen["ablation"])
+    assert after["domain_shift"]["look"] == "unseen" and after["domain_shift"]["add_auc"] == unseen["add_auc"]
+    assert {k: v for k, v in after.items() if k not in ("test", "domain_shift")} == \
+        {k: v for k, v in before.items() if k not in ("test", "domain_shift")}
+    assert file_sha256(models / "panda.safetensors") == before["weights_sha256"]
+    assert not list(models.glob("*.tmp"))
+    cells = looks_table.look_cells(unseen)
+    assert cells[0].startswith(f"{unseen['add_auc']:.1f} / ")
+    assert cells[2].count("/") == 2 and "-" != cells[2].split(" / ")[0]  # DepthNet's relative error is there
+
+
+def test_looks_table_has_every_shipped_model_and_look_and_rewrites_only_its_block(tmp_path):
+    lines = looks_table.table()
+    rows = [line for line in lines[2:] if line.startswith("| `")]
+    assert len(rows) == len(looks_table.MODELS) * len(looks_table.LOOKS)
+    assert all(line.count("|") == 7 for line in rows)
+    panda_randomized = next(line for line in rows if line.startswith("| `panda` | randomized"))
+    card = yaml.safe_load((weights_dir() / "panda.yaml").read_text())
+    assert f"{card['test']['randomized']['add_auc']:.1f} / " in panda_randomized
+    assert looks_table.look_cells(None) == ["-"] * 4
+    page = tmp_path / "page.md"
+    page.write_text(f"intro\n{looks_table.BEGIN}\nold table\n{looks_table.END}\noutro\n")
+    looks_table.rewrite(page, lines)
+    text = page.read_text()
+    assert text.startswith("intro\n") and text.endswith("outro\n") and "old table" not in text
+    assert panda_randomized in text
