@@ -2,7 +2,9 @@
 scripts/ship_model.py and scripts/rescore_model.py measured): per look the fitted ADD AUC and mean ADD, the
 ablation (feed-forward, fitted, fitted with the true joints), and the depth diagnostics (DepthNet's root depth,
 the fit without the depth prior and the shipped estimate, median signed error in % of the true depth; the
-detected keypoints' median scale about the true centroid). A card that lacks a look or a measure shows "-".
+detected keypoints' median scale about the true centroid). Then the truncation table: the fitted AUC of the frames
+that show the whole robot and of those with one or two, or three or more, of DREAM's keypoints out of the image.
+A card that lacks a look or a measure shows "-".
 
     python scripts/looks_table.py            # rewrites the block between the markers in README.md
     python scripts/looks_table.py --print    # only prints it
@@ -16,6 +18,7 @@ from pathlib import Path
 
 from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.resources import weights_dir
+from holo_pose_ros.robots.spec import load_robot_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- looks-table:begin -->", "<!-- looks-table:end -->"
@@ -52,8 +55,22 @@ def look_cells(test: dict | None) -> list[str]:
     return [fitted, methods, relative, scale]
 
 
+def truncation_cells(rows: list[dict] | None, n_keypoints: int) -> list[str]:
+    """'AUC (frames)' of the whole views, of those missing 1-2 keypoints and of those missing 3 or more, from a
+    card's truncation rows (one per in-image count). AUC is a mean over frames, so a group's is the frame-weighted
+    mean of its rows'."""
+    groups = ((n_keypoints, n_keypoints), (n_keypoints - 2, n_keypoints - 1), (0, n_keypoints - 3))
+    cells = []
+    for lo, hi in groups:
+        chosen = [r for r in rows or [] if lo <= r["n_in_image"] <= hi and r.get("add_auc") is not None]
+        frames = sum(r["n_frames"] for r in chosen)
+        auc = sum(r["add_auc"] * r["n_frames"] for r in chosen) / frames if frames else None
+        cells.append("-" if auc is None else f"{auc:.1f} ({frames})")
+    return cells if rows else ["-"] * 3
+
+
 def table(models: tuple[str, ...] = MODELS) -> list[str]:
-    """Markdown lines: one row per shipped model and look."""
+    """Markdown lines: one row per shipped model and look, then the truncation table."""
     lines = ["| model | look | fitted AUC / mean ADD mm | ablation AUC: feed-forward / fitted / true joints | "
              "root depth error %: DepthNet / fit without prior / shipped | detected keypoints' scale |",
              "|---|---|---|---|---|---|"]
@@ -65,6 +82,17 @@ def table(models: tuple[str, ...] = MODELS) -> list[str]:
         tests = card.get("test") or {}
         for look in LOOKS:
             lines.append(f"| `{name}` | {look} | " + " | ".join(look_cells(tests.get(look))) + " |")
+    lines += ["", "| model | look | whole robot in view: AUC (frames) | 1-2 keypoints out | 3 or more out |",
+              "|---|---|---|---|---|"]
+    for name in models:
+        path = weights_dir() / f"{name}.yaml"
+        if not path.exists():
+            continue
+        _, card = read_card(path)
+        n = len(load_robot_spec(card["robot"]).keypoints)
+        for look in LOOKS:
+            rows = ((card.get("test") or {}).get(look) or {}).get("truncation")
+            lines.append(f"| `{name}` | {look} | " + " | ".join(truncation_cells(rows, n)) + " |")
     return lines
 
 

@@ -49,6 +49,8 @@ def test_rescore_rewrites_only_the_test_section_with_the_depth_diagnostics(tmp_p
         {k: v for k, v in before.items() if k not in ("test", "domain_shift")}
     assert file_sha256(models / "panda.safetensors") == before["weights_sha256"]
     assert not list(models.glob("*.tmp"))
+    whole, few, many = looks_table.truncation_cells(unseen["truncation"], 7)
+    assert sum(int(c.split("(")[1].rstrip(")")) for c in (whole, few, many) if c != "-") == 3
     cells = looks_table.look_cells(unseen)
     assert cells[0].startswith(f"{unseen['add_auc']:.1f} / ")
     assert cells[2].count("/") == 2 and "-" != cells[2].split(" / ")[0]  # DepthNet's relative error is there
@@ -56,13 +58,18 @@ def test_rescore_rewrites_only_the_test_section_with_the_depth_diagnostics(tmp_p
 
 def test_looks_table_has_every_shipped_model_and_look_and_rewrites_only_its_block(tmp_path):
     lines = looks_table.table()
-    rows = [line for line in lines[2:] if line.startswith("| `")]
+    rows = [line for line in lines[2:lines.index("")] if line.startswith("| `")]
     assert len(rows) == len(looks_table.MODELS) * len(looks_table.LOOKS)
+    truncation = [line for line in lines[lines.index(""):] if line.startswith("| `")]
+    assert len(truncation) == len(rows) and all(line.count("|") == 6 for line in truncation)
     assert all(line.count("|") == 7 for line in rows)
     panda_randomized = next(line for line in rows if line.startswith("| `panda` | randomized"))
     card = yaml.safe_load((weights_dir() / "panda.yaml").read_text())
     assert f"{card['test']['randomized']['add_auc']:.1f} / " in panda_randomized
     assert looks_table.look_cells(None) == ["-"] * 4
+    rows_by_count = [{"n_in_image": 7, "n_frames": 3, "add_auc": 60.0}, {"n_in_image": 6, "n_frames": 1, "add_auc": 20.0},
+                     {"n_in_image": 5, "n_frames": 1, "add_auc": 40.0}, {"n_in_image": 2, "n_frames": 2, "add_auc": 0.0}]
+    assert looks_table.truncation_cells(rows_by_count, 7) == ["60.0 (3)", "30.0 (2)", "0.0 (2)"]
     page = tmp_path / "page.md"
     page.write_text(f"intro\n{looks_table.BEGIN}\nold table\n{looks_table.END}\noutro\n")
     looks_table.rewrite(page, lines)
