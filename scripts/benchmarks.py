@@ -193,7 +193,7 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         lines += ["", "## Choosing `lite`: network-only latency of the candidates", "",
                   "Batch 1, one network pass, median of "
                   f"{cfg['candidate_runs']} after 5 warm-up passes; Panda heads. Accuracy is compared only where a candidate "
-                  "was trained: 224 against 192 px (the README's campaign narrative, Panda's thirteenth run).", "",
+                  "was trained: 224 against 192 px (docs/campaign.md, Panda's thirteenth run).", "",
                   "| candidate | backbone | DepthNet | input px | heatmap | GFLOPs | params (M) | torch ms | ONNX Runtime ms |",
                   "|---|---|---|---:|---|---:|---:|---:|---:|"]
         for c in candidates:
