@@ -4,10 +4,16 @@ Frame i depends only on (seed, i), so the output is identical for any number of 
 
 With `second_robot` (another robot type) each frame also shows that robot beside the first, both in its ground
 truth (one DREAM object each, so that each robot's DreamReader reads its own) and in the mask (its links numbered
-after the first robot's); placement from config/generate/scene/second_robot.yaml."""
+after the first robot's); placement from config/generate/scene/second_robot.yaml.
+
+A configuration with a `video:` section (config/generate/video.yaml) writes videos instead of independent frames:
+clips of `clip_frames` frames, each with one camera, look and background, the robot moving smoothly
+(data/motion.py); frame i still depends only on (seed, i). A configuration may start from another with
+`extends: NAME` and give only what differs."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing as mp
 import os
@@ -40,7 +46,17 @@ def load_generator_config(config: str | Path) -> dict:
         names = sorted(p.stem for p in (config_dir() / "generate").glob("*.yaml"))
         raise ValueError(f"unknown generator config '{config}'; shipped: {', '.join(names)}")
     with open(path) as f:
-        return yaml.safe_load(f)
+        cfg = yaml.safe_load(f)
+    base = cfg.pop("extends", None)
+    return _merged(load_generator_config(base), cfg) if base else cfg
+
+
+def _merged(base: dict, override: dict) -> dict:
+    """`base` with `override`'s keys replacing its own, mappings merged key by key."""
+    out = dict(base)
+    for key, value in override.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 @dataclass(frozen=True)
@@ -97,6 +113,9 @@ class FrameRenderer:
             self.second_colours = {link: mesh.color for link, mesh in second_meshes.items()}
         self.writer = DreamWriter(job.out, self.model, self.K, job.width, job.height,
                                   others=[self.second] if self.second is not None else ())
+        self.video = job.config.get("video")
+        if self.video and self.second is not None:
+            raise ValueError("a video configuration shows one robot; it cannot have a second_robot")
         self.static_T_cam_base = None  # camera.static: one camera pose for the whole folder, the robot moves
         if job.config["camera"].get("static", False):
             from holo_pose_ros.data.scene import sample_static_camera
@@ -113,7 +132,10 @@ class FrameRenderer:
 
         job, cfg = self.job, self.job.config
         rng = np.random.default_rng([job.seed, index + 1])
-        if self.second is None:
+        frame_rng = rng  # the sensor's noise: its own draw every frame, videos included
+        if self.video:
+            scene, rng = self._video_scene(index)
+        elif self.second is None:
             scene = sample_scene(self.model, cfg, rng, self.K, job.width, job.height, self.colours,
                                  self.static_T_cam_base)
         else:
@@ -131,7 +153,25 @@ class FrameRenderer:
                                        tuple(cfg["background"]["kinds"]))
         alpha = result.rgba[..., 3:4].astype(np.float32) / 255.0
         image = result.rgba[..., :3].astype(np.float32) * alpha + background * (1.0 - alpha)
-        return _post_process(image, cfg["post"], rng), result.labels, scene
+        return _post_process(image, cfg["post"], frame_rng), result.labels, scene
+
+    def _video_scene(self, index: int) -> tuple[FrameScene, np.random.Generator]:
+        """Frame `index` of a video folder and the generator its clip's background is drawn with: clip
+        index // clip_frames keeps one camera (framing its start pose), look and background, all drawn from
+        (seed, clip); its joints follow data/motion.py's waypoint path from that start pose."""
+        from holo_pose_ros.data.motion import waypoint_path
+        from holo_pose_ros.data.scene import sample_scene, sample_static_camera
+
+        job, cfg, video = self.job, self.job.config, self.video
+        clip, t = divmod(index, int(video["clip_frames"]))
+        rng = np.random.default_rng([job.seed, clip + 1, 1])  # frames draw from [seed, index + 1]: another stream
+        lower, upper = self.model.lower.numpy(), self.model.upper.numpy()
+        start = rng.uniform(lower, upper)
+        T_cam_base = sample_static_camera(self.model, cfg["camera"], rng, self.K, job.height, start)
+        scene = sample_scene(self.model, cfg, rng, self.K, job.width, job.height, self.colours, T_cam_base, start)
+        path = waypoint_path(lower, upper, start, t + 1, np.random.default_rng([job.seed, clip + 1, 2]),
+                             tuple(video["leg_frames"]), float(video["reach"]))
+        return dataclasses.replace(scene, joints=path[t]), rng
 
     def write(self, index: int) -> int:
         image, labels, scene = self.frame(index)

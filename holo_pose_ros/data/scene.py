@@ -158,13 +158,16 @@ def _random_distractors(cfg: dict, appearance: dict, rng: np.random.Generator, T
     return out
 
 
-def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, height: int) -> np.ndarray:
-    """T_cam<-base of a camera that stays put while the robot moves (generator option camera.static): drawn as
-    for one frame, aimed at the neutral pose's centre, its extent grown by camera.static_radius_scale and filling
-    camera.static_fill of the image, so that most poses stay in view."""
+def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, height: int,
+                         joints: np.ndarray | None = None) -> np.ndarray:
+    """T_cam<-base of a camera that stays put while the robot moves (generator option camera.static, and each clip
+    of a video): drawn as for one frame, aimed at the centre of the pose `joints` (default: the neutral pose), its
+    extent grown by camera.static_radius_scale and filling camera.static_fill of the image, so that most poses
+    near it stay in view."""
     import torch
 
-    links = model.link_transforms(model.neutral[None].to(model.dtype))
+    q = model.neutral[None].to(model.dtype) if joints is None else torch.as_tensor(np.asarray(joints)[None], dtype=model.dtype)
+    links = model.link_transforms(q)
     origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
     centre, radius = _robot_extent(origins)
     framing = {**cfg, "fill": cfg["static_fill"], "look_at_jitter": 0.0}
@@ -172,14 +175,15 @@ def sample_static_camera(model, cfg: dict, rng: np.random.Generator, K: np.ndarr
 
 
 def sample_scene(model, cfg: dict, rng: np.random.Generator, K: np.ndarray, width: int, height: int,
-                 link_colours: dict[str, np.ndarray], T_cam_base: np.ndarray | None = None) -> FrameScene:
-    """Draw one frame: joints uniform within the URDF limits, then camera (unless `T_cam_base` fixes it),
-    materials, light, distractors and shading. `model` is a float64 RobotModel; `link_colours` the meshes' own colours
-    (for the realistic look)."""
+                 link_colours: dict[str, np.ndarray], T_cam_base: np.ndarray | None = None,
+                 joints: np.ndarray | None = None) -> FrameScene:
+    """Draw one frame: joints uniform within the URDF limits (unless `joints` fixes them), then camera (unless
+    `T_cam_base` fixes it), materials, light, distractors and shading. `model` is a float64 RobotModel;
+    `link_colours` the meshes' own colours (for the realistic look)."""
     import torch
 
     lower, upper = model.lower.numpy(), model.upper.numpy()
-    q = rng.uniform(lower, upper)
+    q = rng.uniform(lower, upper) if joints is None else np.asarray(joints, dtype=np.float64)
     links = model.link_transforms(torch.from_numpy(q[None]))
     origins = np.stack([T[0, :3, 3].numpy() for T in links.values()])
     keypoints = model.keypoints(torch.from_numpy(q[None]))[0].numpy()
