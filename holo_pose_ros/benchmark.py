@@ -20,7 +20,7 @@ from holo_pose_ros.model.network import HolisticNet, example_inputs
 from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoints_2d, to_keypoints_3d, to_markers,
                           to_pose_stamped, to_transform_stamped)
 
-TRACKING_HOLD = 10  # frames per scene when tracking (the generator's frames are independent scenes)
+TRACKING_HOLD = 10  # frames per scene when tracking independent frames (a video plays in order instead)
 STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "messages", "total")
 
 
@@ -32,6 +32,19 @@ def network_gflops(net: HolisticNet) -> float:
     with torch.inference_mode(), FlopCounterMode(display=False) as counter:
         net(*inputs)
     return counter.get_total_flops() / 1e9
+
+
+def stream_frames(reader: DreamReader, needed: int, tracking: bool, cap: int) -> tuple[list, int]:
+    """What a timed run cycles over, and how many times in a row each frame is sent: a generated video plays in
+    order, each frame once, as its camera would deliver it (up to `needed` frames); a folder of independent scenes
+    gives its first `cap` frames, each held TRACKING_HOLD times when tracking (a camera watching a slow arm), else
+    once."""
+    from holo_pose_ros.data.generator import is_video_folder
+
+    frames = list(reader)
+    if is_video_folder(reader.folder):
+        return frames[:needed], 1
+    return frames[:cap], TRACKING_HOLD if tracking else 1
 
 
 def _messages(estimate, header: Header, parents: list[int]) -> None:
@@ -48,16 +61,17 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
               threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool | None = None,
               parts: bool | None = None, localize_size: int | None = None) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
-    Tracking needs a stream: each frame is then held for TRACKING_HOLD frames (a camera watching a slow arm)."""
+    Tracking needs a stream: a generated video plays in order; independent frames are each held for TRACKING_HOLD
+    frames (stream_frames)."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
                                      min_confidence=0.0, fit=fit, parts=parts, localize_size=localize_size)
     reader = DreamReader(data, estimator.robot)
-    pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in list(reader)[:min(len(reader), 50)]]
+    chosen, hold = stream_frames(reader, warmup + frames, tracking, cap=50)
+    pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in chosen]
     parents = estimator.robot.keypoint_parents
     samples = {stage: [] for stage in STAGES}
-    hold = TRACKING_HOLD if tracking else 1
     for i in range(warmup + frames):
         msg, K = pool[(i // hold) % len(pool)]
         t0 = time.perf_counter()

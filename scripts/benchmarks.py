@@ -25,7 +25,7 @@ import yaml
 from tqdm import tqdm
 
 from holo_pose_ros import __version__
-from holo_pose_ros.benchmark import TRACKING_HOLD, device_name, network_gflops
+from holo_pose_ros.benchmark import device_name, network_gflops
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.model.network import HolisticNet, example_inputs, load_model_config
 from holo_pose_ros.model.onnx_runtime import OnnxNetwork, export_onnx
@@ -62,10 +62,11 @@ def end_to_end(model: str, data: Path, backend: str, tracking: bool, device: str
     return json.loads(out.read_text())
 
 
-def accuracy(model: str, data: Path, backend: str, device: str, work: Path) -> dict:
-    out = work / f"{model}-{backend}-{data.name}-report.json"
+def accuracy(model: str, data: Path, backend: str, device: str, work: Path, tracking: bool = False) -> dict:
+    """`holo-pose evaluate` of one folder (`tracking`: in order, each frame cropped from the last); its report."""
+    out = work / f"{model}-{backend}-{data.name}-{'track' if tracking else 'loc'}-report.json"
     run_cli(["evaluate", "--model", model, "--data", str(data), "--backend", backend, "--device", device, "--out",
-             str(out), "--quiet"])
+             str(out), "--quiet"] + (["--tracking"] if tracking else []))
     return json.loads(out.read_text())
 
 
@@ -141,6 +142,7 @@ def plot(rows: list[dict], candidates: list[dict], path: Path) -> None:
 
 
 def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], device: str, minutes: float) -> None:
+    looks = [*cfg["test_sets"], "video"]
     lines = [
         "# Benchmarks",
         "",
@@ -156,24 +158,23 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         "One `sensor_msgs/Image` in, every output message built: image conversion, localization, crop, network, "
         "forward kinematics, the lifter and the kinematic fit when the model's card chose the fitted estimate "
         "(*estimate*), messages (`holo-pose benchmark`). *Localize + crop* runs two network passes a frame "
-        f"(the whole image, then the robot's box); *tracking* one (the previous frame's box; each scene held for "
-        f"{TRACKING_HOLD} frames). *Node* is the same estimator as a ROS 2 node in its own process, timed from "
+        "(the whole image, then the robot's box); *tracking* one (the previous frame's box), on a generated video "
+        f"played in order (seed {cfg['tracking_video']['seed']}, config/generate/video.yaml). *Node* is the same estimator as a ROS 2 node in its own process, timed from "
         f"`publish()` of the Image to the arrival of its JointState, with a {cfg['node']['rate_hz']} Hz camera "
         "(the node drops frames it cannot take: *answered* is its output rate). AUC (ADD, 0-100 mm) on the "
         "held-out generated sets, seeds "
         + " / ".join(f"{s['seed']} ({look})" for look, s in cfg["test_sets"].items())
-        + ", measured with the row's backend; tracking rows have none (the test sets are independent scenes, "
-        "not video).",
+        + ", measured with the row's backend; tracking rows: the video's, tracked (*AUC video*).",
         "",
         "| model | backend | mode | estimate | FPS | p50 ms | p95 ms | node: answered FPS | node p50 / p95 ms | "
-        "GFLOPs / pass | params (M) | AUC " + " | AUC ".join(cfg["test_sets"]) + " |",
-        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(cfg["test_sets"]),
+        "GFLOPs / pass | params (M) | AUC " + " | AUC ".join(looks) + " |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(looks),
     ]
     for r in rows:
         b, n = r["bench"], r["bench"].get("node")
         node_cells = (f"{n['fps']:.1f} ({n['dropped']}/{n['sent']} dropped)", f"{n['latency_ms_p50']:.0f} / "
                       f"{n['latency_ms_p95']:.0f}") if n else ("—", "—")
-        aucs = [f"{r['auc'][look]['add_auc']:.1f}" if look in r["auc"] else "—" for look in cfg["test_sets"]]
+        aucs = [f"{r['auc'][look]['add_auc']:.1f}" if look in r["auc"] else "—" for look in looks]
         lines.append(f"| {r['model']} ({b['config']}, {b['input_size']} px) | {b['backend']} | "
                      f"{'tracking' if b['tracking'] else 'localize + crop'} | "
                      f"{'fitted' if b.get('fit') else 'feed-forward'} | {b['fps']:.1f} | "
@@ -225,11 +226,12 @@ def main(argv: list[str] | None = None) -> int:
     for model, backend, tracking in tqdm(jobs, desc="shipped models", unit="run"):
         robot = yaml.safe_load((weights_dir() / f"{model}.yaml").read_text())["robot"]
         folders = {look: test_set(robot, look, spec) for look, spec in cfg["test_sets"].items()}
+        video = test_set(robot, "video", cfg["tracking_video"])  # tracking plays a video, in order
         node = cfg["node"] if args.device == "cpu" and backend == "onnxruntime" else None
-        bench = end_to_end(model, next(iter(folders.values())), backend, tracking, args.device,
-                           cfg["node"]["frames"] if node else cfg["frames"], node, work)
-        auc = {} if tracking else {look: accuracy(model, folder, backend, args.device, work)
-                                   for look, folder in folders.items()}
+        bench = end_to_end(model, video if tracking else next(iter(folders.values())), backend, tracking,
+                           args.device, cfg["node"]["frames"] if node else cfg["frames"], node, work)
+        auc = {"video": accuracy(model, video, backend, args.device, work, tracking=True)} if tracking else \
+            {look: accuracy(model, folder, backend, args.device, work) for look, folder in folders.items()}
         rows.append({"model": model, "bench": bench, "auc": auc})
     candidates = [] if args.skip_candidates else [
         candidate(c, cfg["candidate_runs"], work) for c in tqdm(cfg["candidates"], desc="lite candidates", unit="net")]

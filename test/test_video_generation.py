@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
+from holo_pose_ros.benchmark import TRACKING_HOLD, stream_frames
 from holo_pose_ros.data.dream import DreamReader
-from holo_pose_ros.data.generator import generate, load_generator_config
+from holo_pose_ros.data.generator import SETTINGS_FILE, generate, is_video_folder, load_generator_config
 from holo_pose_ros.data.motion import waypoint_path
 
 
@@ -50,3 +51,18 @@ def test_a_generated_video_holds_its_camera_within_a_clip_and_moves_the_robot_sm
     again = tmp_path / "again"
     generate("panda", 8, again, seed=11, workers=1, progress=False, config=tmp_path / "clips.yaml")
     assert (again / "000005.rgb.jpg").read_bytes() == (tmp_path / "video" / "000005.rgb.jpg").read_bytes()
+    # the benchmark plays a video in order, each frame once, however many frames it times
+    assert is_video_folder(tmp_path / "video")
+    chosen, hold = stream_frames(DreamReader(tmp_path / "video", "panda"), 6, tracking=True, cap=3)
+    assert [f.name for f in chosen] == [f"{i:06d}" for i in range(6)] and hold == 1
+
+
+def test_independent_frames_are_held_when_tracking(tmp_path):
+    generate("panda", 3, tmp_path / "frames", seed=3, workers=1, progress=False)
+    reader = DreamReader(tmp_path / "frames", "panda")
+    assert not is_video_folder(tmp_path / "frames")
+    assert stream_frames(reader, 100, tracking=True, cap=2)[1] == TRACKING_HOLD
+    chosen, hold = stream_frames(reader, 100, tracking=False, cap=2)
+    assert len(chosen) == 2 and hold == 1
+    (tmp_path / "frames" / SETTINGS_FILE).write_text("not json")  # a damaged settings file: not a video
+    assert not is_video_folder(tmp_path / "frames")

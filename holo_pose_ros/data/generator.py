@@ -51,6 +51,18 @@ def load_generator_config(config: str | Path) -> dict:
     return _merged(load_generator_config(base), cfg) if base else cfg
 
 
+def is_video_folder(folder: str | Path) -> bool:
+    """Whether a DREAM folder is a generated video (its settings file names a `video:` section): its frames are
+    then clips in order, not independent scenes."""
+    path = Path(folder) / SETTINGS_FILE
+    if not path.is_file():
+        return False
+    try:
+        return bool((json.loads(path.read_text()).get("generator") or {}).get("video"))
+    except (json.JSONDecodeError, AttributeError):
+        return False
+
+
 def _merged(base: dict, override: dict) -> dict:
     """`base` with `override`'s keys replacing its own, mappings merged key by key."""
     out = dict(base)

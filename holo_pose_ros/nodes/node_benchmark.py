@@ -16,7 +16,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Header
 
 from holo_pose_ros.bags import ESTIMATOR_NS
-from holo_pose_ros.benchmark import TRACKING_HOLD
+from holo_pose_ros.benchmark import stream_frames
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.nodes.processes import private_graph_env, start_node, stop_nodes
 from msg_adapters import camera_info_from_K, rgb_to_image, stamp_ns
@@ -61,14 +61,15 @@ def node_latency(model: str, data: str | Path, frames: int = 100, rate_hz: float
 
     robot = read_card(model)[1]["robot"]  # the node loads the weights; here only the robot's name is needed
     reader = DreamReader(data, robot)
-    pool = [(reader.load_image(f), f.K) for f in list(reader)[:20]]
+    chosen, hold = stream_frames(reader, frames + 30, tracking, cap=20)  # 30: more than the warm-up takes
+    pool = [(reader.load_image(f), f.K) for f in chosen]
     env = private_graph_env(base_domain=60)
     log = Path(tempfile.mkdtemp(prefix="holo_pose_node_bench_")) / "estimator.log"
     params = {"robot": robot, "model": str(model), "backend": backend, "threads": threads, "tracking": tracking,
               "pipeline": pipeline, "min_confidence": 0.0, "publish_annotated": False, "publish_tf": False}
     process = start_node("estimator_node", params, log, env)
     rclpy.init()
-    probe = LatencyProbe(pool, hold=TRACKING_HOLD if tracking else 1)
+    probe = LatencyProbe(pool, hold=hold)
     try:
         # warm-up: one frame at a time until the node answers (it loads the model, maybe exports it), then 5 more
         deadline, warm = time.monotonic() + startup_timeout_s, 0
