@@ -1,6 +1,6 @@
 """The README's table of every shipped model on its three test looks side by side, read from the model cards (what
 scripts/ship_model.py and scripts/rescore_model.py measured): per look the fitted ADD AUC and mean ADD, the
-ablation (feed-forward, fitted, fitted with the true joints), and the depth diagnostics (DepthNet's root depth,
+ablation (feed-forward, fitted, fitted without the depth prior, fitted with the true joints), and the depth diagnostics (DepthNet's root depth,
 the fit without the depth prior and the shipped estimate, median signed error in % of the true depth; the
 detected keypoints' median scale about the true centroid). Then the truncation table: the fitted AUC of the frames
 that show the whole robot and of those with one or two, or three or more, of DREAM's keypoints out of the image.
@@ -47,8 +47,9 @@ def look_cells(test: dict | None) -> list[str]:
     depth = test.get("depth_diagnostics") or {}
     error = depth.get("root_depth_error") or {}
     fitted = _f(test.get("add_auc"), ".1f") + " / " + _f(test.get("add_mean_mm"), ".0f")
-    methods = " / ".join(_f(_get(ablation, m, "add_auc"), ".1f")
-                         for m in ("feed-forward", "fitted", "fitted, known joints"))
+    methods = " / ".join([_f(_get(ablation, m, "add_auc"), ".1f") for m in ("feed-forward", "fitted")]
+                         + [_f(_get(depth, "add_auc", "fit_no_prior"), ".1f"),
+                            _f(_get(ablation, "fitted, known joints", "add_auc"), ".1f")])
     relative = " / ".join(_f(_get(error, s, "relative_median_percent"), "+.1f")
                           for s in ("depthnet", "fit_no_prior", "shipped"))
     scale = _f(_get(depth, "keypoint_scale", "detected", "median"), ".3f")
@@ -71,7 +72,8 @@ def truncation_cells(rows: list[dict] | None, n_keypoints: int) -> list[str]:
 
 def table(models: tuple[str, ...] = MODELS) -> list[str]:
     """Markdown lines: one row per shipped model and look, then the truncation table."""
-    lines = ["| model | look | fitted AUC / mean ADD mm | ablation AUC: feed-forward / fitted / true joints | "
+    lines = ["| model | look | fitted AUC / mean ADD mm | AUC: feed-forward / fitted / fitted without the depth prior / "
+             "fitted with the true joints | "
              "root depth error %: DepthNet / fit without prior / shipped | detected keypoints' scale |",
              "|---|---|---|---|---|---|"]
     for name in models:

@@ -67,6 +67,7 @@ def test_looks_table_has_every_shipped_model_and_look_and_rewrites_only_its_bloc
     card = yaml.safe_load((weights_dir() / "panda.yaml").read_text())
     assert f"{card['test']['randomized']['add_auc']:.1f} / " in panda_randomized
     assert looks_table.look_cells(None) == ["-"] * 4
+    assert looks_table.look_cells({"add_auc": 50.0, "add_mean_mm": 60.0})[1] == "- / - / - / -"
     rows_by_count = [{"n_in_image": 7, "n_frames": 3, "add_auc": 60.0}, {"n_in_image": 6, "n_frames": 1, "add_auc": 20.0},
                      {"n_in_image": 5, "n_frames": 1, "add_auc": 40.0}, {"n_in_image": 2, "n_frames": 2, "add_auc": 0.0}]
     assert looks_table.truncation_cells(rows_by_count, 7) == ["60.0 (3)", "30.0 (2)", "0.0 (2)"]
