@@ -179,8 +179,11 @@ def main() -> None:
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
     handles = axes[1].get_legend_handles_labels()[0] + axes[0].get_legend_handles_labels()[0]
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.12, 1, 1))  # room for the runs' legend below the panels
+    columns = min(len(handles), 5)
+    fig.legend(handles=handles, loc="lower center", ncol=columns, fontsize=8, frameon=False)
+    legend_in = 0.17 * -(-len(handles) // columns) + 0.6  # its rows, and the panels' axis labels above it
+    fig.set_size_inches(16, 5.2 + legend_in)
+    fig.tight_layout(rect=(0, legend_in / (5.2 + legend_in), 1, 1))  # room for the runs' legend below the panels
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")
