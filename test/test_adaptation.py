@@ -86,7 +86,8 @@ def test_images_alone_adapt_a_model_that_changes_only_what_adaptation_trains(ada
     a = card["adaptation"]
     assert a["source_kind"] == "dream" and a["n_images"] == 8 and not a["joint_states"]
     assert a["n_pseudo_labels"] >= 2 and a["finetune_steps"] == 3 and "source_figures" not in a  # no labels to score
-    assert set(a["losses"]) == {"keypoint consistency", "rendered views"}  # no segmentation head: no mask term
+    # the shipped Panda (pyramid224) predicts a robot mask: mask consistency joins the other two terms
+    assert set(a["losses"]) == {"keypoint consistency", "mask consistency", "rendered views"}
     parent = load_file(str(weights_dir() / "panda.safetensors"))
     assert a["parent_sha256"] == yaml.safe_load((weights_dir() / "panda.yaml").read_text())["weights_sha256"]
     child = load_file(str(adapted.with_suffix(".safetensors")))

@@ -45,7 +45,9 @@ def test_exported_graph_matches_torch_on_rendered_crops(small_model_card):
 
 def test_shipped_model_estimates_agree_across_backends(frames):
     """Both backends find the same 2D evidence, but for a heatmap whose two best peaks nearly tie (the arg-max may
-    flip on a 1e-4 difference), and give the same estimate wherever their evidence agrees."""
+    flip on a 1e-4 difference), and give the same estimate wherever their evidence agrees. 'The same' is within
+    0.1 px: the pyramid224 head's sub-pixel decoding moves a keypoint by up to 0.07 px on the backends' 1e-4
+    differences of the logits (the shipped Panda, 5 December 2026; a broken export moves them by pixels)."""
     torch_estimator = Estimator.from_model("panda")
     ort_estimator = Estimator.from_model("panda", backend="onnxruntime")
     assert ort_estimator.backend == "onnxruntime"
@@ -57,7 +59,7 @@ def test_shipped_model_estimates_agree_across_backends(frames):
         assert (da is None) == (db is None)
         if da is None:
             continue
-        moved = np.linalg.norm(da.uv - db.uv, axis=1) > 0.05
+        moved = np.linalg.norm(da.uv - db.uv, axis=1) > 0.1
         assert moved.mean() <= 0.02, f"{frame.name}: {moved.sum()} of {len(moved)} keypoints differ"
         a = torch_estimator.estimate_detection(da, frame.K, methods=("fitted",))["fitted"]
         b = ort_estimator.estimate_detection(db, frame.K, methods=("fitted",))["fitted"]

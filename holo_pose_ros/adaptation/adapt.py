@@ -61,11 +61,15 @@ def _check_out(out: Path) -> None:
 
 
 def _detect_all(estimator, frames, progress: bool) -> list[np.ndarray | None]:
-    """The parent's crop box of every frame (None where it finds no robot)."""
+    """The parent's crop box of every frame (None where it finds no robot): found as the product finds it, the
+    presence times the fit's quality, so that a dark frame the presence head half believes in, but whose keypoints
+    nothing explains, is not a robot."""
     boxes = []
     for frame in tqdm(frames, desc="find the robot", unit="image", disable=not progress):
-        detection = estimator.detect(frame.image, frame.K)
-        boxes.append(None if detection is None or detection.presence < estimator.min_confidence else detection.box)
+        estimator.reset()
+        estimate = estimator.estimate(frame.image, frame.K)
+        boxes.append(estimate.box if estimate.found else None)
+    estimator.reset()
     return boxes
 
 
