@@ -30,6 +30,7 @@ import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- learning-curve:begin -->", "<!-- learning-curve:end -->"
+PANELS_IN = 5.2  # height of the three panels, inches; the legend below them adds its own
 
 
 def read_log(path: Path) -> list[dict]:
@@ -123,7 +124,7 @@ def main() -> None:
     runs = dict(sorted(((name, rows) for name, rows in runs.items() if rows), key=lambda run: run[1][0]["views"]))
     if not runs:
         raise SystemExit(f"no training logs with a 2D validation in {args.logs}")
-    fig, axes = plt.subplots(1, 3, figsize=(16, 5.2))
+    fig, axes = plt.subplots(1, 3, figsize=(16, PANELS_IN))
     colours = plt.get_cmap("tab10" if len(runs) <= 10 else "tab20").colors  # one colour per run in every panel
     table = ["| run | robot | views | train hours | val 2D median px (DREAM / fit kps) | val ADD AUC (feed-forward / fitted) |",
              "|---|---|---|---|---|---|"]
@@ -182,8 +183,8 @@ def main() -> None:
     columns = min(len(handles), 5)
     fig.legend(handles=handles, loc="lower center", ncol=columns, fontsize=8, frameon=False)
     legend_in = 0.17 * -(-len(handles) // columns) + 0.6  # its rows, and the panels' axis labels above it
-    fig.set_size_inches(16, 5.2 + legend_in)
-    fig.tight_layout(rect=(0, legend_in / (5.2 + legend_in), 1, 1))  # room for the runs' legend below the panels
+    fig.set_size_inches(16, PANELS_IN + legend_in)
+    fig.tight_layout(rect=(0, legend_in / (PANELS_IN + legend_in), 1, 1))  # room for the runs' legend below the panels
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")

@@ -76,24 +76,18 @@ def table(models: tuple[str, ...] = MODELS) -> list[str]:
              "fitted with the true joints | "
              "root depth error %: DepthNet / fit without prior / shipped | detected keypoints' scale |",
              "|---|---|---|---|---|---|"]
-    for name in models:
-        path = weights_dir() / f"{name}.yaml"
-        if not path.exists():
-            continue
-        _, card = read_card(path)
-        tests = card.get("test") or {}
+    cards = {name: read_card(weights_dir() / f"{name}.yaml")[1] for name in models
+             if (weights_dir() / f"{name}.yaml").exists()}
+    tests = {name: card.get("test") or {} for name, card in cards.items()}
+    for name in cards:
         for look in LOOKS:
-            lines.append(f"| `{name}` | {look} | " + " | ".join(look_cells(tests.get(look))) + " |")
+            lines.append(f"| `{name}` | {look} | " + " | ".join(look_cells(tests[name].get(look))) + " |")
     lines += ["", "| model | look | whole robot in view: AUC (frames) | 1-2 keypoints out | 3 or more out |",
               "|---|---|---|---|---|"]
-    for name in models:
-        path = weights_dir() / f"{name}.yaml"
-        if not path.exists():
-            continue
-        _, card = read_card(path)
+    for name, card in cards.items():
         n = len(load_robot_spec(card["robot"]).keypoints)
         for look in LOOKS:
-            rows = ((card.get("test") or {}).get(look) or {}).get("truncation")
+            rows = (tests[name].get(look) or {}).get("truncation")
             lines.append(f"| `{name}` | {look} | " + " | ".join(truncation_cells(rows, n)) + " |")
     return lines
 

@@ -24,6 +24,7 @@ from ship_model import domain_shift, score_tests  # noqa: E402
 from holo_pose_ros.model.cards import read_card  # noqa: E402
 from holo_pose_ros.model.lifter import load_lifter  # noqa: E402
 from holo_pose_ros.model.weights import load_model  # noqa: E402
+from holo_pose_ros.resources import weights_dir  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     net, robot, _ = load_model(card_path)
     lifter = load_lifter(card_path.parent / card["lifter"]) if "lifter" in card else None
     estimator_card = card.get("estimator") or {}
-    name = card_path.stem if card_path.parent.name == "weights" else str(card_path)
+    name = card_path.stem if card_path.parent.resolve() == weights_dir().resolve() else str(card_path)
     metrics = score_tests(net, robot, name, lifter, estimator_card.get("fit"), bool(estimator_card.get("parts")),
                           args.test)
     tests = {**(card.get("test") or {}), **metrics} if args.keep_other_looks else metrics

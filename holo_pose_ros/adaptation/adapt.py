@@ -66,10 +66,8 @@ def _detect_all(estimator, frames, progress: bool) -> list[np.ndarray | None]:
     nothing explains, is not a robot."""
     boxes = []
     for frame in tqdm(frames, desc="find the robot", unit="image", disable=not progress):
-        estimator.reset()
-        estimate = estimator.estimate(frame.image, frame.K)
+        estimate = estimator.estimate(frame.image, frame.K)  # untracked: every frame on its own
         boxes.append(estimate.box if estimate.found else None)
-    estimator.reset()
     return boxes
 
 

@@ -108,18 +108,7 @@ def truncation_table(add_m: np.ndarray, found: np.ndarray | None, n_in_image: np
     counts = np.asarray(n_in_image, int)
     if counts.size and (counts.min() < 0 or counts.max() > n_keypoints):
         raise ValueError(f"in-image keypoint counts must lie in 0..{n_keypoints}")
-    rows = []
-    for k in np.unique(counts):
-        sel = counts == k
-        found_add = add_m[sel & ok]
-        rows.append({
-            "n_in_image": int(k),
-            "n_frames": int(sel.sum()),
-            "add_auc": add_auc(add_m[sel], ok[sel]),
-            "add_mean_mm": float(found_add.mean() * 1000.0) if found_add.size else float("nan"),
-            "n_not_found": int((sel & ~ok).sum()),
-        })
-    return rows
+    return [{"n_in_image": int(k), **_group_row(add_m, ok, counts == k)} for k in np.unique(counts)]
 
 
 def apparent_size_px(gt_uv: np.ndarray, in_image: np.ndarray) -> float:
@@ -139,16 +128,14 @@ def size_table(add_m: np.ndarray, found: np.ndarray | None, size_px: np.ndarray,
     size_px = np.asarray(size_px, float)
     if len(edges_px) < 2 or np.any(np.diff(edges_px) <= 0):
         raise ValueError(f"size bin edges must be at least two increasing values, got {list(edges_px)}")
-    rows = []
-    for lo, hi in zip(edges_px[:-1], edges_px[1:]):
-        sel = (size_px >= lo) & (size_px < hi)
-        if not sel.any():
-            continue
-        found_add = add_m[sel & ok]
-        rows.append({
-            "min_px": float(lo), "max_px": float(hi), "n_frames": int(sel.sum()),
-            "add_auc": add_auc(add_m[sel], ok[sel]),
+    bins = [(lo, hi, (size_px >= lo) & (size_px < hi)) for lo, hi in zip(edges_px[:-1], edges_px[1:])]
+    return [{"min_px": float(lo), "max_px": float(hi), **_group_row(add_m, ok, sel)} for lo, hi, sel in bins if sel.any()]
+
+
+def _group_row(add_m: np.ndarray, ok: np.ndarray, sel: np.ndarray) -> dict:
+    """A table row of the frames `sel`: n_frames, add_auc (percent; frames not found count as failures), add_mean_mm
+    over the found ones (NaN if none) and n_not_found."""
+    found_add = add_m[sel & ok]
+    return {"n_frames": int(sel.sum()), "add_auc": add_auc(add_m[sel], ok[sel]),
             "add_mean_mm": float(found_add.mean() * 1000.0) if found_add.size else float("nan"),
-            "n_not_found": int((sel & ~ok).sum()),
-        })
-    return rows
+            "n_not_found": int((sel & ~ok).sum())}
