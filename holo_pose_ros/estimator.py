@@ -97,7 +97,9 @@ class Estimator:
     (config/silhouette_sweep.yaml) and 25 ms a frame. Without `off_image_evidence`, fit keypoints detected outside the image (in the
     crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
     (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
-    chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss.
+    chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss; on
+    tracked frames too unless `parts_tracked` is off (its card's `estimator.parts_tracked`): a tracked frame also
+    starts from the previous frame's fit, which came out of the search already.
     The whole-image pass is the network's 2D-only `localize` (presence and DREAM's keypoints from their fit heatmaps;
     no depth, joints or 3D volume: the same box and presence as the full pass, for less) at `localize_size` px (a
     multiple of 32; None: the crop's size; `localizer`: what runs it, e.g. its ONNX export); 0, or a network without
@@ -108,7 +110,8 @@ class Estimator:
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
                  depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
-                 parts: bool = False, localize_size: int | None = None, localizer: Callable | None = None):
+                 parts: bool = False, parts_tracked: bool = True, localize_size: int | None = None,
+                 localizer: Callable | None = None):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -126,7 +129,7 @@ class Estimator:
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
         self.off_image_evidence = off_image_evidence
-        self.parts, self._parts_fitter = bool(parts), None
+        self.parts, self.parts_tracked, self._parts_fitter = bool(parts), bool(parts_tracked), None
         self.silhouette = bool(silhouette)
         if self.silhouette and not net.cfg.segmentation:
             raise ValueError(f"silhouette: the network '{net.cfg.name}' predicts no robot mask (segmentation: false)")
@@ -144,14 +147,14 @@ class Estimator:
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
         network's ONNX export (made once, cached) with `threads` intra-op threads. The card's `estimator` section sets
-        `fit`, `silhouette`, `parts` and `localize_size` unless given. A card that names no lifter (a training run's card) fits with the robot's
+        `fit`, `silhouette`, `parts`, `parts_tracked` and `localize_size` unless given. A card that names no lifter (a training run's card) fits with the robot's
         shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, card = load_model(model, device)
-        for key in ("fit", "silhouette", "parts"):  # what the card's validation chose, unless the caller says otherwise
+        for key in ("fit", "silhouette", "parts", "parts_tracked"):  # the card's validated choice unless given
             validated = (card.get("estimator") or {}).get(key)
             if kwargs.get(key) is None and validated is not None:
                 kwargs[key] = bool(validated)
@@ -354,7 +357,8 @@ class Estimator:
             q0, T0 = [ff["joints"][None]], [ff["T_cam_base"][None]]
             if hypotheses is not None:  # the `lifter_starts` best hypotheses: each start costs about 0.5 ms of fit
                 q0.append(hypotheses[0][:self.lifter_starts]); T0.append(hypotheses[1][:self.lifter_starts])
-            if tracked and previous is not None and previous.joints is not None:
+            from_previous = tracked and previous is not None and previous.joints is not None
+            if from_previous:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()
             use_prior = self.depth_prior if depth_prior is None else depth_prior
@@ -363,8 +367,9 @@ class Estimator:
             silhouette = None
             if self.silhouette and detection.mask is not None and detection.mask.any():
                 silhouette = self.fitter.silhouette(detection.mask)
-            fitted = self.search().fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0), known_joints,
-                                       depth_prior_m if use_prior else None, silhouette=silhouette)
+            fitted = self.search(from_previous).fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0),
+                                                    known_joints, depth_prior_m if use_prior else None,
+                                                    silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
@@ -380,9 +385,10 @@ class Estimator:
         self._previous = last if last.found else None
         return results
 
-    def search(self):
-        """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced)."""
-        if not self.parts:
+    def search(self, from_previous: bool = False):
+        """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced); the
+        Fitter for a tracked frame that starts from the previous frame's fit unless `parts_tracked`."""
+        if not self.parts or (from_previous and not self.parts_tracked):
             return self.fitter
         if self._parts_fitter is None or self._parts_fitter.fitter is not self.fitter:
             from holo_pose_ros.fitting.parts import PartsFitter

@@ -11,17 +11,14 @@ method (`estimator.fit`, `estimator.parts`), then the ablation when the model ha
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
-
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from ship_model import domain_shift, score_tests  # noqa: E402
 
-from holo_pose_ros.model.cards import read_card  # noqa: E402
+from holo_pose_ros.model.cards import read_card, rewrite_card  # noqa: E402
 from holo_pose_ros.model.lifter import load_lifter  # noqa: E402
 from holo_pose_ros.model.weights import load_model  # noqa: E402
 from holo_pose_ros.resources import weights_dir  # noqa: E402
@@ -46,10 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     shift = domain_shift(tests)
     if shift:
         card["domain_shift"] = shift
-    temporary = card_path.with_suffix(".yaml.tmp")  # an interrupted write leaves the old card whole
-    with open(temporary, "w") as f:
-        yaml.safe_dump(card, f, sort_keys=False)
-    os.replace(temporary, card_path)
+    rewrite_card(card_path, card)
     print(f"rewrote {card_path}: test looks {', '.join(tests)}")
     return 0
 

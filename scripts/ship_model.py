@@ -5,12 +5,14 @@ lifter ships beside it (<name>_lifter.*, named in the card) and each test set al
 / lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
 A test folder of the unseen look (config/generate/unseen.yaml) also becomes the card's `domain_shift` figure.
 The validation folders choose the default method (`estimator.fit`) and whether the fit searches by parts
-(`estimator.parts`, fitting/parts.py); the tests and their ablation then run with that choice.
+(`estimator.parts`, fitting/parts.py); the tests and their ablation then run with that choice. With the search
+and `--validation-video` (generated videos, config/generate/video.yaml), tracking them chooses whether tracked
+frames search too (`estimator.parts_tracked`; scripts/choose_tracked_search.py does it for a shipped card).
 
     python scripts/ship_model.py runs/panda_heatmap_cpu/best.yaml panda --lifter runs/lifter/panda_lifter.yaml \
         --validation data/panda_val_1012 --validation data/panda_val_unseen_1013 \
         --test data/panda_test_dr:randomized --test data/panda_test_photo:photo --test data/panda_test_unseen:unseen \
-        --log runs/panda_heatmap_cpu/log.csv
+        --log runs/panda_heatmap_cpu/log.csv --validation-video data/panda_val_video_1015
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "a
 ROOT = Path(__file__).resolve().parent.parent
 UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
 BY_PARTS = "fitted by parts"  # the validation's fourth row: the fit searched by parts (fitting/parts.py)
+TRACKED_ROWS = {True: "by parts on every frame", False: "by parts on untracked frames"}  # tracking validation
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--validation", action="append", default=[],
                         help="generated validation folder (never a test set), repeatable (one per look: the unseen "
                              "look's too); the ablation's mean AUC over them chooses the default: fitted or feed-forward")
+    parser.add_argument("--validation-video", action="append", default=[],
+                        help="generated validation video (never a test set), repeatable: tracked with and without "
+                             "the search by parts on tracked frames, it chooses estimator.parts_tracked")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
     lifter = load_lifter(args.lifter) if args.lifter else None
@@ -79,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
                               "validation_by_folder": {folder: {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
                                                                 for m, r in a.items()} for folder, a in ablations.items()}}
         print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
+        if extra["estimator"]["parts"] and args.validation_video:
+            extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video))
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
     metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test)
     if args.log:
@@ -99,6 +107,24 @@ def main(argv: list[str] | None = None) -> int:
                      dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
+
+
+def tracked_search_choice(net, robot, lifter, videos: list[str]) -> dict:
+    """The card's `estimator.parts_tracked` and its evidence: each validation video tracked (fitted by parts on
+    its untracked frames) with and without the search on tracked frames; the search stays on them only where it
+    raises the mean AUC. A tracked frame also starts from the previous frame's fit, so the search may add nothing
+    there but time (or move a good fit into another basin of lower cost)."""
+    auc = {}
+    for video in videos:
+        for tracked in (True, False):
+            estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True, parts_tracked=tracked,
+                                  tracking=True)
+            report, _, _ = evaluate_folder(estimator, DreamReader(video, robot), depth_diagnostics=False)
+            auc.setdefault(video, {})[TRACKED_ROWS[tracked]] = {"add_auc": report["add_auc"]}
+    mean = {row: sum(a[row]["add_auc"] for a in auc.values()) / len(auc) for row in TRACKED_ROWS.values()}
+    choice = bool(mean[TRACKED_ROWS[True]] > mean[TRACKED_ROWS[False]])
+    print(f"tracking: the search by parts on {'every frame' if choice else 'untracked frames only'} ({mean})")
+    return {"parts_tracked": choice, "tracking_chosen_on": list(videos), "tracking_validation": auc}
 
 
 def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, tests: list[str]) -> dict:

@@ -60,6 +60,27 @@ def test_the_default_method_is_the_one_the_card_validated():
     assert Estimator.from_model("kuka", parts=False).parts is False
 
 
+def test_tracked_frames_search_by_parts_only_where_the_card_chose_it():
+    """A tracked frame also starts from the previous frame's fit: it is searched by parts only with
+    `parts_tracked`, which the card's tracking validation sets (scripts/choose_tracked_search.py)."""
+    from holo_pose_ros.fitting.parts import PartsFitter
+    from holo_pose_ros.model.cards import read_card
+
+    for robot in ("panda", "kuka"):
+        chosen = read_card(robot)[1]["estimator"]
+        estimator = Estimator.from_model(robot)
+        assert estimator.parts_tracked == bool(chosen.get("parts_tracked", True))
+        assert set(chosen["tracking_validation"][chosen["tracking_chosen_on"][0]]) == {
+            "by parts on every frame", "by parts on untracked frames"}
+    afresh_only = Estimator.from_model("panda", parts=True, parts_tracked=False)
+    assert isinstance(afresh_only.search(), PartsFitter)
+    assert afresh_only.search(from_previous=True) is afresh_only.fitter
+    everywhere = Estimator.from_model("panda", parts=True, parts_tracked=True)
+    assert isinstance(everywhere.search(from_previous=True), PartsFitter)
+    plain = Estimator.from_model("panda", parts=False)
+    assert plain.search() is plain.fitter and plain.search(from_previous=True) is plain.fitter
+
+
 def test_the_search_by_parts_never_ends_above_the_plain_fit(frames):
     """The same detections fitted plainly and searched by parts (fitting/parts.py): the search's reprojection cost
     is never higher."""

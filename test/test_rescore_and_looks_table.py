@@ -1,7 +1,7 @@
 """scripts/rescore_model.py on a copy of the shipped Panda model and three generated unseen-look frames: the card's
 test section is rewritten with the depth diagnostics and the size and truncation tables, the rest of the card and
 the weights are untouched; scripts/looks_table.py reads such cards into the README's table and rewrites only its
-block."""
+block; scripts/choose_tracked_search.py writes only a card's choice of the search on tracked frames."""
 
 from __future__ import annotations
 
@@ -77,3 +77,36 @@ def test_looks_table_has_every_shipped_model_and_look_and_rewrites_only_its_bloc
     text = page.read_text()
     assert text.startswith("intro\n") and text.endswith("outro\n") and "old table" not in text
     assert panda_randomized in text
+
+
+def test_choose_tracked_search_writes_the_choice_and_its_evidence_only(tmp_path):
+    """scripts/choose_tracked_search.py on a copy of the shipped Kuka model (fitted by parts) and a short generated
+    video: estimator.parts_tracked and its evidence are written, nothing else; a card that does not search by parts
+    is refused with a message and left as it was."""
+    models = tmp_path / "models"
+    models.mkdir()
+    for suffix in ("kuka.yaml", "kuka.safetensors", "kuka_lifter.yaml", "kuka_lifter.safetensors"):
+        shutil.copy(weights_dir() / suffix, models / suffix)
+    before = yaml.safe_load((models / "kuka.yaml").read_text())
+    generate("kuka", 4, tmp_path / "video", seed=4243, workers=1, progress=False, config="video")
+    script = [sys.executable, str(ROOT / "scripts" / "choose_tracked_search.py")]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run(script + [str(models / "kuka.yaml"), "--video", str(tmp_path / "video")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600, env=env)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    after = yaml.safe_load((models / "kuka.yaml").read_text())
+    chosen = after["estimator"]
+    scores = chosen["tracking_validation"][str(tmp_path / "video")]
+    assert chosen["tracking_chosen_on"] == [str(tmp_path / "video")]
+    assert chosen["parts_tracked"] == (scores["by parts on every frame"]["add_auc"]
+                                       > scores["by parts on untracked frames"]["add_auc"])
+    kept = ("parts_tracked", "tracking_chosen_on", "tracking_validation")
+    assert {k: v for k, v in chosen.items() if k not in kept} == \
+        {k: v for k, v in before["estimator"].items() if k not in kept}
+    assert {k: v for k, v in after.items() if k != "estimator"} == {k: v for k, v in before.items() if k != "estimator"}
+    plain = {**after, "estimator": {**after["estimator"], "parts": False}}
+    (models / "kuka.yaml").write_text(yaml.safe_dump(plain, sort_keys=False))
+    refused = subprocess.run(script + [str(models / "kuka.yaml"), "--video", str(tmp_path / "video")],
+                             capture_output=True, text=True, cwd=ROOT, timeout=600, env=env)
+    assert refused.returncode == 1 and "does not fit by parts" in refused.stderr
+    assert yaml.safe_load((models / "kuka.yaml").read_text()) == plain

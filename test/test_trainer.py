@@ -131,6 +131,17 @@ def test_a_warm_started_run_draws_views_its_donor_never_saw(tmp_path):
     assert not torch.equal(next(iter(fresh))["image"], next(iter(loader))["image"])
 
 
+def test_a_donor_of_another_robot_starts_the_robots_campaign_at_zero_views(tmp_path):
+    """A run warm-started from another robot's card (Kuka from Panda's network) copies its weights but not its view
+    count: those views were of the donor's robot, and this robot's learning curve starts here."""
+    first = Trainer(tiny_config(tmp_path / "first"), device="cpu", progress=False).run()
+    assert yaml.safe_load(open(first))["training"]["cumulative_views"] > 0
+    kuka = Trainer({**tiny_config(tmp_path / "kuka"), "robot": "kuka", "init_from": str(first)}, device="cpu",
+                   progress=False)
+    assert (kuka.views_before, kuka.hours_before) == (0, 0.0)
+    assert list(kuka._loader(4).dataset.indices) == [0, 1, 2, 3]
+
+
 def test_a_cpu_run_with_frozen_blocks_runs_them_in_onnx_runtime(tmp_path):
     """`freeze_blocks` on the CPU: the frozen stem and blocks run in ONNX Runtime (exported once per run), the
     run trains, and the frozen weights stay exactly as loaded; `frozen_backend: torch` keeps them in PyTorch."""

@@ -5,6 +5,7 @@ light clients (the joint-state monitor) read cards with it alone."""
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import yaml
@@ -67,6 +68,15 @@ def read_card(model: str | Path) -> tuple[Path, dict]:
     """(card path, card) of a shipped name or a card/weights path; ModelLoadError when it is not a YAML mapping."""
     card_path = resolve_model(model)
     return card_path, read_card_file(card_path)
+
+
+def rewrite_card(card_path: Path, card: dict) -> None:
+    """Replace a card file with `card` (YAML, keys in their order) through a temporary file: an interrupted write
+    leaves the old card whole."""
+    temporary = card_path.with_suffix(".yaml.tmp")
+    with open(temporary, "w") as f:
+        yaml.safe_dump(card, f, sort_keys=False)
+    os.replace(temporary, card_path)
 
 
 def check_card_keys(card_path: Path, card: dict, known: set[str], required: tuple[str, ...]) -> None:

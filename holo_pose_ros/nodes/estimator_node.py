@@ -68,7 +68,8 @@ PARAMETERS: ParameterSpecs = {
     "fit": ("auto | true | false: fit the kinematic model to the detected 2D keypoints (false: the paper's "
             "feed-forward estimate; auto: the model card's validated choice).", False, {}),
     "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (20-30 ms a "
-              "frame more; auto: the model card's validated choice).", False, {}),
+              "frame more; auto: the model card's validated choice); when tracking, tracked frames search too only "
+              "where the card chose it (estimator.parts_tracked).", False, {}),
     "localize_size": ("Input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                       "keypoints); 0: the full network pass; -1: the model card's choice, else the crop's size.", True,
                       dict(integer_range=[IntegerRange(from_value=-1, to_value=1024)])),

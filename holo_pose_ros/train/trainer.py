@@ -72,13 +72,17 @@ def train_only(net: HolisticNet, prefixes: list[str]) -> list[torch.nn.Module]:
     return [net]
 
 
-def _campaign_so_far(init_from: str | None) -> tuple[int, float]:
-    """(views, wall-clock training hours) that the warm-start model's card records, (0, 0) without one."""
+def _campaign_so_far(init_from: str | None, robot: str) -> tuple[int, float]:
+    """(views, wall-clock training hours) that the warm-start model's card records; (0, 0) without one, and for a
+    donor of another robot (a transfer starts the robot's campaign: its views were of the donor's robot)."""
     if not init_from:
         return 0, 0.0
     from holo_pose_ros.model.cards import read_card
 
-    training = read_card(init_from)[1].get("training") or {}
+    card = read_card(init_from)[1]
+    if card.get("robot") != robot:
+        return 0, 0.0
+    training = card.get("training") or {}
     return int(training.get("cumulative_views", training.get("samples", 0))), float(training.get("cumulative_train_hours", 0.0))
 
 
@@ -138,7 +142,7 @@ class Trainer:
         self.best_kp2d_px = math.inf  # the kept-model criterion of networks with fit heatmaps
         self.total_steps = sum(s["steps"] for s in cfg["stages"])
         # cumulative over a campaign: the warm-start model's own training, then this run's (restored on resume)
-        self.views_before, self.hours_before = _campaign_so_far(cfg.get("init_from"))
+        self.views_before, self.hours_before = _campaign_so_far(cfg.get("init_from"), cfg["robot"])
         self.hours_this_run, self._clock = 0.0, time.perf_counter()
 
     # -- data ----------------------------------------------------------------------------------------------
