@@ -23,12 +23,17 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import looks_table  # noqa: E402
 
 
-def test_rescore_rewrites_only_the_test_section_with_the_depth_diagnostics(tmp_path):
+def shipped_copy(name: str, tmp_path: Path) -> tuple[Path, dict]:
+    """A copy of shipped model `name` (card, weights, lifter) in tmp_path/models, and its card as shipped."""
     models = tmp_path / "models"
     models.mkdir()
-    for suffix in ("panda.yaml", "panda.safetensors", "panda_lifter.yaml", "panda_lifter.safetensors"):
-        shutil.copy(weights_dir() / suffix, models / suffix)
-    before = yaml.safe_load((models / "panda.yaml").read_text())
+    for suffix in (".yaml", ".safetensors", "_lifter.yaml", "_lifter.safetensors"):
+        shutil.copy(weights_dir() / f"{name}{suffix}", models / f"{name}{suffix}")
+    return models, yaml.safe_load((models / f"{name}.yaml").read_text())
+
+
+def test_rescore_rewrites_only_the_test_section_with_the_depth_diagnostics(tmp_path):
+    models, before = shipped_copy("panda", tmp_path)
     generate("panda", 3, tmp_path / "unseen", seed=4242, workers=1, progress=False, config="unseen")
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "rescore_model.py"), str(models / "panda.yaml"),
                           "--test", f"{tmp_path / 'unseen'}:unseen"], capture_output=True, text=True, cwd=ROOT,
@@ -83,11 +88,7 @@ def test_choose_tracked_search_writes_the_choice_and_its_evidence_only(tmp_path)
     """scripts/choose_tracked_search.py on a copy of the shipped Kuka model (fitted by parts) and a short generated
     video: estimator.parts_tracked and its evidence are written, nothing else; a card that does not search by parts
     is refused with a message and left as it was."""
-    models = tmp_path / "models"
-    models.mkdir()
-    for suffix in ("kuka.yaml", "kuka.safetensors", "kuka_lifter.yaml", "kuka_lifter.safetensors"):
-        shutil.copy(weights_dir() / suffix, models / suffix)
-    before = yaml.safe_load((models / "kuka.yaml").read_text())
+    models, before = shipped_copy("kuka", tmp_path)
     generate("kuka", 4, tmp_path / "video", seed=4243, workers=1, progress=False, config="video")
     script = [sys.executable, str(ROOT / "scripts" / "choose_tracked_search.py")]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
