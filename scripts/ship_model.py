@@ -87,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
         if extra["estimator"]["parts"] and args.validation_video:
             extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video))
+        elif args.validation_video:
+            print("validation videos not tracked: the search by parts is off, so tracked frames fit plainly anyway")
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
     metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test)
     if args.log:

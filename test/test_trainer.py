@@ -194,3 +194,19 @@ def test_a_train_only_run_adds_a_mask_layer_and_changes_nothing_else(tmp_path, s
     assert float(rows[-1]["loss_mask"]) > 0
     with pytest.raises(ValueError, match="no parameter"):
         Trainer({**cfg, "train_only": ["nothing.here"], "out": str(tmp_path / "bad")}, device="cpu", progress=False)
+
+
+def test_style_noise_restyles_the_frozen_blocks_output_and_needs_them(tmp_path):
+    """`style_noise` attaches feature-statistics noise after the last frozen block and trains; without frozen
+    blocks there is no boundary to restyle, and the run is refused by name."""
+    cfg = {**tiny_config(tmp_path / "noise"), "freeze_blocks": 3, "style_noise": {"probability": 0.5}}
+    trainer = Trainer(cfg, device="cpu", progress=False)
+    assert trainer.run().is_file()
+    backbone = trainer.net.backbone
+    assert backbone.style_noise is not None and backbone.style_noise.probability == 0.5
+    assert backbone.style_noise_after == 2
+    rows = list(csv.DictReader(open(tmp_path / "noise" / "log.csv")))
+    assert rows and all(float(r["loss_loss"]) == float(r["loss_loss"]) for r in rows)  # finite, not NaN
+    with pytest.raises(ValueError, match="style_noise needs"):
+        Trainer({**tiny_config(tmp_path / "bad"), "style_noise": {"probability": 0.5}}, device="cpu",
+                progress=False)._attach_style_noise()

@@ -24,6 +24,7 @@ from holo_pose_ros.model.network import HolisticNet, add_kinematics, load_model_
 from holo_pose_ros.model.weights import save_model, transfer_weights
 from holo_pose_ros.robots.kinematics import RobotModel
 from holo_pose_ros.train.losses import supervised_losses, total_loss
+from holo_pose_ros.train.style_noise import FeatureStatisticsNoise
 
 
 def load_train_config(path: str | Path) -> dict:
@@ -222,6 +223,18 @@ class Trainer:
             self.net.backbone, self.cfg["freeze_blocks"], self.model_cfg.input_size,
             self.out / f"frozen_prefix_rank{self.rank}.onnx", threads=torch.get_num_threads())
 
+    def _attach_style_noise(self) -> None:
+        """`style_noise: {probability, scale}`: the maps leaving the frozen blocks get their channel statistics
+        redrawn while training (train/style_noise.py), so that the trained layers learn not to lean on them."""
+        noise = FeatureStatisticsNoise.from_config(self.cfg.get("style_noise"))
+        if noise is None:
+            return
+        if self.cfg.get("freeze_blocks", 0) <= 0 or not hasattr(self.net.backbone, "style_noise"):
+            raise ValueError("style_noise needs an EfficientNet-Lite backbone with freeze_blocks > 0: the noise "
+                             "restyles the maps that leave the frozen blocks")
+        self.net.backbone.style_noise = noise
+        self.net.backbone.style_noise_after = self.cfg["freeze_blocks"] - 1
+
     def _param_groups(self, stage: dict) -> list[dict]:
         """The trainable parameters in two groups: the heads (first; the logged lr is theirs) and the backbone,
         whose learning rate is the stage's times `backbone_lr_factor` (default 1). A stage that trains a freshly
@@ -287,6 +300,7 @@ class Trainer:
                 if self.rank == 0:
                     print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
         self._attach_frozen_prefix()
+        self._attach_style_noise()
         self.net.train()
         for module in self.frozen:
             module.eval()
