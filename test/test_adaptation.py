@@ -262,6 +262,18 @@ def test_by_default_only_the_batchnorm_statistics_change(unlabelled, tmp_path):
     assert changed and all(k.endswith(("running_mean", "running_var")) for k in changed), sorted(changed)[:5]
 
 
+def test_a_labelled_source_is_scored_after_adaptation_unless_told_not_to(unlabelled, tmp_path):
+    """A DREAM folder with labels: the card gets the parent's and the adapted model's figures on its frames (read
+    after adaptation); `--no-score` skips them, for sweeps."""
+    labelled = unlabelled[1]
+    for name, flags in (("scored", []), ("unscored", ["--no-score"])):
+        assert cli_main(["adapt", "--model", "panda", "--images", str(labelled), "--out", str(tmp_path / name),
+                         "--quiet", *flags]) == 0
+    scored = yaml.safe_load((tmp_path / "scored" / "model.yaml").read_text())["adaptation"]
+    assert set(scored["source_figures"]) >= {"parent", "adapted"}, scored["source_figures"]
+    assert "source_figures" not in yaml.safe_load((tmp_path / "unscored" / "model.yaml").read_text())["adaptation"]
+
+
 def test_the_mask_targets_are_the_silhouette_the_generator_drew(unlabelled):
     reader = DreamReader(unlabelled[1], "panda")
     silhouettes = SilhouetteRenderer("panda", 224)
