@@ -262,28 +262,6 @@ def test_by_default_only_the_batchnorm_statistics_change(unlabelled, tmp_path):
     assert changed and all(k.endswith(("running_mean", "running_var")) for k in changed), sorted(changed)[:5]
 
 
-def test_rendered_views_through_the_users_camera_alone_need_no_pseudo_label(unlabelled, tmp_path):
-    """Both consistency weights at 0 and `camera_match`: no pseudo-label is made, only rendered views (restyled by
-    the camera model measured on the user's crops) train, and the card records that camera."""
-    config = tmp_path / "camera.yaml"
-    config.write_text(yaml.safe_dump({"finetune": {"steps": 2, "synthetic_views": 6, "synthetic_batch_size": 2,
-                                                   "consistency_weight": 0.0, "mask_consistency_weight": 0.0,
-                                                   "camera_match": True, "train": ["keypoint_head", "depth_head"]}}))
-    out = tmp_path / "camera_model"
-    assert cli_main(["adapt", "--model", "panda", "--images", str(unlabelled[0]), "--out", str(out), "--quiet",
-                     "--config", str(config)]) == 0
-    a = yaml.safe_load((out / "model.yaml").read_text())["adaptation"]
-    assert a["n_pseudo_labels"] == 0 and a["n_candidates"] == 0 and a["finetune_steps"] == 2
-    assert set(a["losses"]) == {"rendered views"}
-    assert set(a["camera_match"]) == {"gain_at_quarter_nyquist", "gain_at_half_nyquist", "gain_at_nyquist",
-                                      "noise_grey_levels"}
-    parent = load_file(str(weights_dir() / "panda.safetensors"))
-    child = load_file(str(out / "model.safetensors"))
-    learned = {k for k in parent if not np.array_equal(parent[k].numpy(), child[k].numpy())
-               and not k.endswith(("running_mean", "running_var", "num_batches_tracked"))}
-    assert learned and all(k.startswith(("keypoint_head.", "depth_head.")) for k in learned), sorted(learned)[:5]
-
-
 def test_a_labelled_source_is_scored_after_adaptation_unless_told_not_to(unlabelled, tmp_path):
     """A DREAM folder with labels: the card gets the parent's and the adapted model's figures on its frames (read
     after adaptation); `--no-score` skips them, for sweeps."""

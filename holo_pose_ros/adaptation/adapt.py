@@ -7,9 +7,7 @@ joint states, on the CPU. In order (config/adapt.yaml):
      kept where they are confident and two looks agree, then keypoint consistency (finetune.py): the heatmaps
      trained towards those labels, and mask consistency for a network with a segmentation head (its mask towards
      the rendered silhouette of the label's pose), rendered labelled views in every step, for what is left of
-     `minutes`; with `finetune.camera_match` the rendered views first pass through a model of the user's camera
-     measured on their images (camera_match.py), and with both consistency weights at 0 no pseudo-label is made:
-     the network then learns the user's look from rendered views with true labels alone.
+     `minutes`.
 The model (weights, card, its lifter) is written to a temporary folder and renamed to `out` when complete, so an
 interrupted run leaves no half-written model; bad input raises AdaptationInputError and writes nothing."""
 
@@ -26,9 +24,8 @@ import torch
 from tqdm import tqdm
 
 from holo_pose_ros.adaptation.batchnorm import reestimate_batchnorm
-from holo_pose_ros.adaptation.camera_match import CameraMatch
 from holo_pose_ros.adaptation.crops import batches, deployed_inputs
-from holo_pose_ros.adaptation.finetune import FinetuneResult, finetune, render_synthetic, uses_pseudo_labels
+from holo_pose_ros.adaptation.finetune import FinetuneResult, finetune, render_synthetic
 from holo_pose_ros.adaptation.interrupts import sigint_latch
 from holo_pose_ros.adaptation.pseudo_labels import PseudoLabel, label_frame, select_labels
 from holo_pose_ros.adaptation.sources import AdaptationInputError, Source, read_source
@@ -36,7 +33,6 @@ from holo_pose_ros.model.cards import file_sha256, read_card
 from holo_pose_ros.resources import config_with_overrides
 
 MODEL_NAME = "model"  # the adapted model is OUT/model.yaml (+ .safetensors): `-p model:=OUT/model.yaml`
-CAMERA_SAMPLE = 600   # network inputs of each side (the user's, rendered) that the camera model is measured on
 
 
 def load_adapt_config(overrides: dict | str | Path | None = None) -> dict:
@@ -147,32 +143,26 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
     inputs, Ks = deployed_inputs(frames, boxes, estimator.size, int(bn["crops_per_frame"]), rng)
     with torch.no_grad():
         reestimate_batchnorm(estimator.net, batches(inputs, Ks, int(bn["batch_size"])), keep=float(bn["keep"]))
-    ft, tuned, candidates, labels, camera = cfg["finetune"], None, [], [], None
-    # a sample of the user's network inputs, for the camera model of the rendered views (camera_match.py)
-    user_inputs = inputs[torch.randperm(len(inputs), generator=torch.Generator().manual_seed(seed))[:CAMERA_SAMPLE]]
     del inputs, Ks
+    ft, tuned, candidates, labels = cfg["finetune"], None, [], []
     if int(ft["steps"]) > 0:
-        if uses_pseudo_labels(ft, estimator.net.cfg.segmentation):
-            pl = cfg["pseudo_labels"]
-            candidates = _label_all(estimator, frames, progress)
-            labels = select_labels(candidates, float(pl["min_confidence"]), float(pl["max_disagreement"]),
-                                   int(pl["min_visible"]))
-            if len(labels) < int(pl["min_labels"]):
-                raise AdaptationInputError(
-                    f"{images}: only {len(labels)} usable pseudo-labels of {len(frames)} images (the robot found "
-                    f"twice in {len(candidates)}); adaptation needs {pl['min_labels']}: give more images in which "
-                    "the whole robot is seen")
+        pl = cfg["pseudo_labels"]
+        candidates = _label_all(estimator, frames, progress)
+        labels = select_labels(candidates, float(pl["min_confidence"]), float(pl["max_disagreement"]),
+                               int(pl["min_visible"]))
+        if len(labels) < int(pl["min_labels"]):
+            raise AdaptationInputError(
+                f"{images}: only {len(labels)} usable pseudo-labels of {len(frames)} images (the robot found twice "
+                f"in {len(candidates)}); adaptation needs {pl['min_labels']}: give more images in which the whole "
+                "robot is seen")
         left_s = minutes * 60.0 - (time.perf_counter() - start)
         if left_s > 0:
             synthetic = render_synthetic(estimator.robot.name, estimator.size, ft["synthetic_generator"],
                                          int(ft["synthetic_views"]), seed=10_000 + seed, progress=progress)
-            if ft.get("camera_match"):
-                camera = CameraMatch(user_inputs, torch.stack([v["image"] for v in synthetic[:CAMERA_SAMPLE]]))
             left_s = minutes * 60.0 - (time.perf_counter() - start)
             with sigint_latch() as check_interrupt:
                 tuned = finetune(estimator.net, estimator.robot, frames, labels, synthetic, ft, max(left_s, 0.0),
-                                 progress, seed, check_interrupt, camera)
-    del user_inputs
+                                 progress, seed, check_interrupt)
     seconds = time.perf_counter() - start
     parent_path, _ = read_card(model)
     adaptation = {
@@ -183,7 +173,6 @@ def adapt(model: str | Path, images: str | Path, out: str | Path, joint_states_t
         "parent": str(parent_path), "parent_sha256": file_sha256(parent_path.parent / read_card(model)[1]["weights"]),
         "minutes": round(seconds / 60.0, 2), "minutes_budget": minutes,
         "finetune_steps": 0 if tuned is None else tuned.steps,
-        **({"camera_match": camera.summary()} if camera is not None else {}),
         "losses": None if tuned is None else {name: {"first": round(tuned.first(name), 4),
                                                      "last": round(tuned.last(name), 4)} for name in tuned.history},
         "config": cfg, **({"command": command} if command else {}),

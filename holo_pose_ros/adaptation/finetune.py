@@ -97,23 +97,15 @@ def render_synthetic(robot: str, size: int, generator: str, n: int, seed: int, p
     return [views[i] for i in tqdm(range(n), desc="render synthetic views", unit="view", disable=not progress)]
 
 
-def uses_pseudo_labels(cfg: dict, segmentation: bool) -> bool:
-    """Whether the fine-tuning `cfg` trains on pseudo-labels: a keypoint consistency weight, or a mask
-    consistency weight on a network with a segmentation head."""
-    return float(cfg["consistency_weight"]) > 0 or (segmentation and float(cfg.get("mask_consistency_weight", 0)) > 0)
-
-
 def finetune(net: HolisticNet, robot: RobotModel, frames: list[SourceFrame], labels: list[PseudoLabel],
              synthetic: list[dict], cfg: dict, seconds: float, progress: bool = True, seed: int = 0,
-             check_interrupt: Callable[[], None] | None = None,
-             camera: Callable[[torch.Tensor, torch.Generator], torch.Tensor] | None = None) -> FinetuneResult:
+             check_interrupt: Callable[[], None] | None = None) -> FinetuneResult:
     """Train `net` in place for at most `cfg['steps']` steps or `seconds` of wall clock: each step one batch of
     pseudo-labelled crops (heatmap cross-entropy towards the labels, weight cfg['consistency_weight']; with a
     segmentation head, the mask's cross-entropy towards the rendered silhouette of the label's pose, weight
     cfg['mask_consistency_weight']) and one of the rendered views (the losses cfg['synthetic_losses']). The
     network is left in eval mode. `check_interrupt` runs before each step (interrupts.sigint_latch: a Ctrl-C is
-    never lost). `camera` (camera_match.CameraMatch) restyles every batch of rendered views as the user's camera
-    would have taken them. Without pseudo-label weights (uses_pseudo_labels) only the rendered views train."""
+    never lost)."""
     from holo_pose_ros.train.losses import mask_loss, supervised_losses, total_loss
 
     rng = np.random.default_rng(seed)
@@ -123,34 +115,24 @@ def finetune(net: HolisticNet, robot: RobotModel, frames: list[SourceFrame], lab
     parameters = trainable(net, list(cfg["train"]))
     optimizer = torch.optim.AdamW(parameters, lr=float(cfg["lr"]), weight_decay=0.0)
     net.eval()  # BatchNorm keeps the user's statistics; no dropout
-    pseudo = uses_pseudo_labels(cfg, net.cfg.segmentation)
-    if pseudo and not labels:
-        raise ValueError("fine-tuning with consistency weights needs pseudo-labels")
-    history: dict[str, list[float]] = {name: [] for name in LOSS_NAMES
-                                       if (pseudo or name == "rendered views") and (name != "mask consistency" or mask_weight)}
-    noise = torch.Generator().manual_seed(seed)
+    history: dict[str, list[float]] = {name: [] for name in LOSS_NAMES if name != "mask consistency" or mask_weight}
     start, step = time.perf_counter(), 0
     bar = tqdm(total=int(cfg["steps"]), desc="adapt", unit="step", disable=not progress)
     while step < int(cfg["steps"]) and time.perf_counter() - start < seconds:
         if check_interrupt is not None:
             check_interrupt()
-        losses, masks = {}, None
-        if pseudo:
-            images, Ks, uv, seen, masks = pseudo_batch(frames, labels, size, int(cfg["batch_size"]), rng, silhouettes)
-            out = net(images, Ks)
-            targets = gaussian_targets(uv, out["heatmap_logits"].shape[-1], size, sigma)
-            losses["keypoint consistency"] = heatmap_cross_entropy(out["heatmap_logits"], targets, seen)
-            if masks is not None:
-                losses["mask consistency"] = mask_loss(out["mask_logits"], masks)
+        images, Ks, uv, seen, masks = pseudo_batch(frames, labels, size, int(cfg["batch_size"]), rng, silhouettes)
+        out = net(images, Ks)
+        targets = gaussian_targets(uv, out["heatmap_logits"].shape[-1], size, sigma)
+        losses = {"keypoint consistency": heatmap_cross_entropy(out["heatmap_logits"], targets, seen)}
+        if masks is not None:
+            losses["mask consistency"] = mask_loss(out["mask_logits"], masks)
         chosen = rng.integers(len(synthetic), size=int(cfg["synthetic_batch_size"]))
         batch = {k: torch.stack([synthetic[i][k] for i in chosen]) for k in synthetic[0]}
-        if camera is not None:
-            batch["image"] = camera(batch["image"], noise)
         out_s = add_kinematics(robot, {k: v.float() for k, v in net(batch["image"], batch["K_crop"]).items()})
         terms = supervised_losses(out_s, batch, net.joint_mid, net.joint_half, size, sigma)
         losses["rendered views"] = total_loss(terms, cfg["synthetic_losses"])
-        loss = (losses["rendered views"]
-                + (float(cfg["consistency_weight"]) * losses["keypoint consistency"] if pseudo else 0.0)
+        loss = (float(cfg["consistency_weight"]) * losses["keypoint consistency"] + losses["rendered views"]
                 + (mask_weight * losses["mask consistency"] if masks is not None else 0.0))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
