@@ -99,9 +99,10 @@ def test_choose_tracked_search_writes_the_choice_and_its_evidence_only(tmp_path)
     chosen = after["estimator"]
     scores = chosen["tracking_validation"][str(tmp_path / "video")]
     assert chosen["tracking_chosen_on"] == [str(tmp_path / "video")]
+    assert chosen["tracking_min_gain_auc"] == 1.0
     assert chosen["parts_tracked"] == (scores["by parts on every frame"]["add_auc"]
-                                       > scores["by parts on untracked frames"]["add_auc"])
-    kept = ("parts_tracked", "tracking_chosen_on", "tracking_validation")
+                                       > scores["by parts on untracked frames"]["add_auc"] + 1.0)
+    kept = ("parts_tracked", "tracking_chosen_on", "tracking_validation", "tracking_min_gain_auc")
     assert {k: v for k, v in chosen.items() if k not in kept} == \
         {k: v for k, v in before["estimator"].items() if k not in kept}
     assert {k: v for k, v in after.items() if k != "estimator"} == {k: v for k, v in before.items() if k != "estimator"}
