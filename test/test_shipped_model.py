@@ -19,9 +19,11 @@ from holo_pose_ros.model.cards import shipped_models
 
 SHIPPED = shipped_models()
 N_FRAMES = 48  # 6 frames were noise (a model better on 600 held-out frames read 87 -> 100 mm on them)
-REGRESSION_BOUND_MM = {"panda": 45.0, "kuka": 65.0, "baxter": 280.0}  # measured 43.3 / 56.0 / 251.4 mm on these
+REGRESSION_BOUND_MM = {"panda": 50.0, "kuka": 65.0, "baxter": 280.0}  # measured 43.3 / 56.0 / 251.4 mm on these
 # frames (Panda run 14 at 224 px; run 13: 40.9, run 10: 46.4; before: 57.3 / 78.8 / 245.2, with the old crop box
-# 71.8 / 70.1 / 288.8). The campaign issue's bound for Panda is 50 mm; it tightens as the shipped models improve.
+# 71.8 / 70.1 / 288.8). Panda's bound went 45 -> 50 mm (the campaign issue's) on 6 December 2026: the pyramid224 run
+# 9 model reads 45.4 mm here, these being photo-look frames, where it gave up 2 mm of held-out mean ADD (41 -> 43) for
+# 59 mm on the unseen look (166 -> 107); docs/campaign.md. It tightens again as the shipped models improve.
 MAX_NOT_FOUND = {"baxter": 1}  # of N_FRAMES, 0 for the others. Baxter misses frame 000022 on this VM with the
 # code and weights of the session before too (fa3abad: 1 not found, 240.6 mm); its held-out rate is 4-5 of 300
 
