@@ -37,10 +37,16 @@ def test_lr_schedule_warms_up_then_decays():
 
 def test_training_run_logs_checkpoints_keeps_and_resumes(tmp_path):
     cfg = tiny_config(tmp_path / "run")
+    cfg["validation"]["snapshots"] = True
     kept = Trainer(cfg, device="cpu", progress=False).run()
     assert kept is not None and kept.exists()
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert [int(r["step"]) for r in rows] == [2, 4, 6] and [r["stage"] for r in rows] == ["depth", "full", "full"]
+    # every validated model is kept as a snapshot card, whether or not it was the best
+    snapshots = sorted((tmp_path / "run" / "snapshots").glob("step_*.yaml"))
+    assert [p.stem for p in snapshots] == ["step_000002", "step_000004", "step_000006"]
+    assert [yaml.safe_load(open(p))["training"]["steps"] for p in snapshots] == [2, 4, 6]
+    assert Estimator.from_model(snapshots[-1], min_confidence=0.0).net.cfg.input_size == 64
     assert all(float(r["loss_loss"]) > 0 for r in rows) and rows[-1]["val_add_auc"] != ""
     # a network with fit heatmaps is also validated fitted, with the robot's shipped lifter
     assert 0.0 <= float(rows[-1]["val_fitted_add_auc"]) <= 100.0 and "val_fitted_add_mean_mm" in rows[-1]

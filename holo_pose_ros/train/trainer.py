@@ -381,12 +381,15 @@ class Trainer:
             self.best_auc, self.best_add_mm = auc, add_mm
             self.best_kp2d_px = math.inf if kp2d is None else kp2d
         self.save_checkpoint(optimizer)  # once, with the best AUC so far, so a resumed run keeps the right best
+        meta = {
+            "training": {"config": self.cfg, "steps": self.step, "samples": self.step * self.cfg["batch_size"],
+                         "cumulative_views": self._views(), "cumulative_train_hours": round(self._train_hours(), 3)},
+            "validation": {k: report[k] for k in ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm",
+                                                  "kp2d_dream_median_px", "kp2d_fit_median_px", "fitted_add_auc",
+                                                  "fitted_add_mean_mm") if k in report},
+        }
+        if self.cfg["validation"].get("snapshots"):  # every validated model, for a choice on other looks' folders
+            save_model(self.net, self.cfg["robot"], self.out / "snapshots" / f"step_{self.step:06d}", meta)
         if improved:
-            return save_model(self.net, self.cfg["robot"], self.out / "best", {
-                "training": {"config": self.cfg, "steps": self.step, "samples": self.step * self.cfg["batch_size"],
-                             "cumulative_views": self._views(), "cumulative_train_hours": round(self._train_hours(), 3)},
-                "validation": {k: report[k] for k in ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm",
-                                                      "kp2d_dream_median_px", "kp2d_fit_median_px", "fitted_add_auc",
-                                                      "fitted_add_mean_mm") if k in report},
-            })
+            return save_model(self.net, self.cfg["robot"], self.out / "best", meta)
         return None
