@@ -45,7 +45,8 @@ TRACKED_SEARCH_MIN_GAIN = 1.0  # AUC points the search on tracked frames must ga
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("card", help="the trained model card (runs/<name>/best.yaml)")
+    parser.add_argument("card", help="the trained model card (runs/<name>/best.yaml, or the snapshot that "
+                                     "scripts/choose_snapshot.py chose)")
     parser.add_argument("name", help="shipped name (holo_pose_ros/weights/<name>.*)")
     parser.add_argument("--test", action="append", required=True, help="DIR:LOOK of a held-out DREAM folder")
     parser.add_argument("--lifter", default=None, help="lifter card to ship with the model (holo-pose train-lifter)")
@@ -97,11 +98,11 @@ def main(argv: list[str] | None = None) -> int:
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
     metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test)
     if args.log:
-        run = Path(args.card).resolve().parent.name
+        run = run_folder(args.card).name
         (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
         shutil.copy(args.log, ROOT / "docs" / "training_logs" / f"{run}.csv")
     shipped = {k: card[k] for k in ("training", "validation") if k in card}
-    run_config = ROOT / (args.resume_config or Path("config") / "train" / f"{Path(args.card).resolve().parent.name}.yaml")
+    run_config = ROOT / (args.resume_config or Path("config") / "train" / f"{run_folder(args.card).name}.yaml")
     out_dir = (shipped.get("training") or {}).get("config", {}).get("out")
     if out_dir and Path(out_dir).is_absolute() and Path(out_dir).resolve().is_relative_to(ROOT.resolve()):
         shipped["training"]["config"]["out"] = str(Path(out_dir).resolve().relative_to(ROOT.resolve()))  # no host paths
@@ -114,6 +115,12 @@ def main(argv: list[str] | None = None) -> int:
                      dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
+
+
+def run_folder(card: str | Path) -> Path:
+    """The training run a kept card comes from: its folder, or the folder above for a snapshot (snapshots/)."""
+    folder = Path(card).resolve().parent
+    return folder.parent if folder.name == "snapshots" else folder
 
 
 def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: float = TRACKED_SEARCH_MIN_GAIN) -> dict:

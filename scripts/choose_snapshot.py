@@ -1,0 +1,124 @@
+"""Choose which of a training run's validated models to ship, on validation folders of several looks.
+
+The trainer keeps its `best.yaml` by the fit keypoints' 2D error on its own look's 48 frames, a criterion blind to
+what matters most: the look no training config names (config/generate/unseen.yaml, the stand-in for a user's
+camera). With `validation.snapshots: true` it also keeps every validated model (runs/<run>/snapshots/); this scores
+each of them, and optionally the shipped model as the bar, through the deployed estimator fitted by parts on the
+first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
+mean ADD AUC over the folders (ties: the earliest). It writes snapshots/choice.json and choice.png (AUC by step,
+one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py.
+
+    python scripts/choose_snapshot.py runs/kuka_pyramid224_cpu2 --baseline kuka \\
+        --validation data/kuka_val_1012 --validation data/kuka_val_unseen_1013 --validation data/kuka_val_unseen_1014
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from holo_pose_ros.data.dream import DreamReader  # noqa: E402
+from holo_pose_ros.estimator import Estimator  # noqa: E402
+from holo_pose_ros.evaluation.run import evaluate_folder  # noqa: E402
+from holo_pose_ros.model.cards import read_card  # noqa: E402
+from holo_pose_ros.model.lifter import load_lifter, shipped_lifter  # noqa: E402
+from holo_pose_ros.model.weights import load_model  # noqa: E402
+
+
+def score(card_path: Path, lifter_path: Path, folders: list[str], frames: int | None) -> dict:
+    """ADD AUC and mean ADD (mm) of one model card on each folder, fitted by parts with the given lifter."""
+    net, robot, _ = load_model(card_path)
+    lifter = load_lifter(lifter_path)
+    scores = {}
+    for folder in folders:
+        estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True)
+        report, _, _ = evaluate_folder(estimator, DreamReader(folder, robot), limit=frames, depth_diagnostics=False,
+                                       progress=False)
+        scores[folder] = {"add_auc": report["add_auc"], "add_mean_mm": report["add_mean_mm"],
+                          "n_not_found": report["n_not_found"], "n_frames": report["n_frames"]}
+    return scores
+
+
+def mean_auc(scores: dict) -> float:
+    """The choice's criterion: the ADD AUC averaged over the validation folders."""
+    return sum(s["add_auc"] for s in scores.values()) / len(scores)
+
+
+def plot(path: Path, steps: list[int], rows: list[dict], folders: list[str], baseline: dict | None) -> None:
+    """AUC by training step for each folder and their mean; the shipped model's figures dashed."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    for i, folder in enumerate([*folders, "mean"]):
+        values = [r["mean_add_auc"] if folder == "mean" else r["scores"][folder]["add_auc"] for r in rows]
+        line, = ax.plot(steps, values, marker="o", lw=2.2 if folder == "mean" else 1.2, label=Path(folder).name,
+                        color="black" if folder == "mean" else f"C{i}")
+        if baseline:
+            bar = baseline["mean_add_auc"] if folder == "mean" else baseline["scores"][folder]["add_auc"]
+            ax.axhline(bar, ls="--", lw=1, color=line.get_color())
+    ax.set_xlabel("training step")
+    ax.set_ylabel("ADD AUC, fitted by parts")
+    ax.set_title(f"{path.parent.parent.name}: validated models" + (f" (dashed: shipped `{baseline['card']}`)"
+                                                                    if baseline else ""), fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", help="a training run folder with snapshots/ (validation.snapshots: true)")
+    parser.add_argument("--validation", action="append", required=True,
+                        help="generated validation folder (never a test set), repeatable; one per look")
+    parser.add_argument("--frames", type=int, default=160, help="frames of each folder scored (default 160)")
+    parser.add_argument("--since", type=int, default=0, help="only snapshots from this training step on")
+    parser.add_argument("--baseline", default=None, help="a shipped model's name or card, scored as the bar")
+    parser.add_argument("--lifter", default=None, help="lifter card (default: the robot's shipped lifter)")
+    args = parser.parse_args(argv)
+    folder = Path(args.run) / "snapshots"
+    cards = sorted(p for p in folder.glob("step_*.yaml") if int(p.stem.split("_")[1]) >= args.since)
+    if not cards:
+        print(f"error: no snapshots in {folder} (train with `validation.snapshots: true`)", file=sys.stderr)
+        return 1
+    robot = read_card(cards[0])[1]["robot"]
+    lifter = Path(args.lifter) if args.lifter else shipped_lifter(robot)
+    if lifter is None:
+        print(f"error: no shipped lifter for {robot}: name one with --lifter", file=sys.stderr)
+        return 1
+    baseline = None
+    if args.baseline:
+        base_path, base_card = read_card(args.baseline)
+        base_lifter = base_path.parent / base_card["lifter"] if "lifter" in base_card else lifter
+        scores = score(base_path, base_lifter, args.validation, args.frames)
+        baseline = {"card": args.baseline, "scores": scores, "mean_add_auc": mean_auc(scores)}
+        print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f} "
+              + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
+    rows = []
+    for card in tqdm(cards, desc="snapshots", unit="model"):
+        scores = score(card, lifter, args.validation, args.frames)
+        rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "scores": scores,
+                     "mean_add_auc": mean_auc(scores)})
+        tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f} "
+                   + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
+    chosen = max(rows, key=lambda r: (r["mean_add_auc"], -r["step"]))
+    result = {"criterion": "mean ADD AUC over the validation folders, fitted by parts", "frames": args.frames,
+              "lifter": str(lifter), "validation": args.validation, "baseline": baseline, "snapshots": rows,
+              "chosen": chosen["card"],
+              "beats_baseline": None if baseline is None else chosen["mean_add_auc"] > baseline["mean_add_auc"]}
+    (folder / "choice.json").write_text(json.dumps(result, indent=1))
+    plot(folder / "choice.png", [r["step"] for r in rows], rows, args.validation, baseline)
+    verdict = "" if baseline is None else (" - beats the bar" if result["beats_baseline"] else " - does NOT beat the bar")
+    print(f"chosen: {chosen['card']} (mean AUC {chosen['mean_add_auc']:.2f}){verdict}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

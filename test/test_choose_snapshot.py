@@ -1,0 +1,46 @@
+"""scripts/choose_snapshot.py on a run folder whose two snapshots hold the shipped Panda weights: every snapshot
+and the bar (the shipped model) are scored on the same generated frames of two looks, identical weights score
+identically, a tie goes to the earliest step and does not count as beating the bar; a run without snapshots is
+refused with the reason."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from holo_pose_ros.data.generator import generate
+from holo_pose_ros.model.weights import load_model, save_model
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = str(ROOT / "scripts" / "choose_snapshot.py")
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_path):
+    net, robot, _ = load_model("panda")
+    for step in (250, 500):
+        save_model(net, robot.name, tmp_path / "run" / "snapshots" / f"step_{step:06d}", {"training": {"steps": step}})
+    generate("panda", 3, tmp_path / "unseen", seed=4343, workers=1, progress=False, config="unseen")
+    generate("panda", 3, tmp_path / "own", seed=4344, workers=1, progress=False, config="randomized")
+    run = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--baseline", "panda", "--frames", "3",
+                          "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600, env=ENV)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    choice = json.loads((tmp_path / "run" / "snapshots" / "choice.json").read_text())
+    assert [r["step"] for r in choice["snapshots"]] == [250, 500]
+    for row in choice["snapshots"]:  # the same weights as the bar: the same figures, folder by folder
+        assert row["scores"] == choice["baseline"]["scores"]
+        assert all(s["n_frames"] == 3 for s in row["scores"].values())
+    assert choice["chosen"].endswith("step_000250.yaml") and choice["beats_baseline"] is False
+    assert (tmp_path / "run" / "snapshots" / "choice.png").stat().st_size > 10_000
+    assert "does NOT beat the bar" in run.stdout
+
+
+def test_a_run_without_snapshots_is_refused(tmp_path):
+    (tmp_path / "run").mkdir()
+    run = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--validation", str(tmp_path)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300, env=ENV)
+    assert run.returncode == 1 and "validation.snapshots: true" in run.stderr
