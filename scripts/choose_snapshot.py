@@ -6,7 +6,8 @@ camera). With `validation.snapshots: true` it also keeps every validated model (
 each of them, and optionally the shipped model as the bar, through the deployed estimator fitted by parts on the
 first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
 mean ADD AUC over the folders (ties: the earliest). It writes snapshots/choice.json and choice.png (AUC by step,
-one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py.
+one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py. A snapshot already in
+choice.json with the same frames, lifter and folders is not scored again, so it can run while the run trains.
 
     python scripts/choose_snapshot.py runs/kuka_pyramid224_cpu2 --baseline kuka \\
         --validation data/kuka_val_1012 --validation data/kuka_val_unseen_1013 --validation data/kuka_val_unseen_1014
@@ -45,6 +46,17 @@ def score(card_path: Path, lifter_path: Path, folders: list[str], frames: int | 
         scores[folder] = {"add_auc": report["add_auc"], "add_mean_mm": report["add_mean_mm"],
                           "n_not_found": report["n_not_found"], "n_frames": report["n_frames"]}
     return scores
+
+
+def scored_before(path: Path, frames: int, lifter: Path, folders: list[str]) -> dict:
+    """Scores of an earlier choice.json made with the same frames, lifter and folders, by snapshot card: a run's
+    snapshots can be scored while it trains and only the new ones scored at its end."""
+    if not path.exists():
+        return {}
+    before = json.loads(path.read_text())
+    if (before.get("frames"), before.get("lifter"), before.get("validation")) != (frames, str(lifter), folders):
+        return {}
+    return {row["card"]: row["scores"] for row in before.get("snapshots", [])}
 
 
 def mean_auc(scores: dict) -> float:
@@ -101,9 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         baseline = {"card": args.baseline, "scores": scores, "mean_add_auc": mean_auc(scores)}
         print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f} "
               + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
+    done = scored_before(folder / "choice.json", args.frames, lifter, args.validation)
     rows = []
     for card in tqdm(cards, desc="snapshots", unit="model"):
-        scores = score(card, lifter, args.validation, args.frames)
+        scores = done.get(str(card)) or score(card, lifter, args.validation, args.frames)
         rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "scores": scores,
                      "mean_add_auc": mean_auc(scores)})
         tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f} "

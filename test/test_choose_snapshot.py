@@ -1,7 +1,7 @@
 """scripts/choose_snapshot.py on a run folder whose two snapshots hold the shipped Panda weights: every snapshot
 and the bar (the shipped model) are scored on the same generated frames of two looks, identical weights score
 identically, a tie goes to the earliest step and does not count as beating the bar; a run without snapshots is
-refused with the reason."""
+refused with the reason; a second run scores only the snapshots that are new."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ SCRIPT = str(ROOT / "scripts" / "choose_snapshot.py")
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
-def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_path):
+def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_path, small_model_card):
     net, robot, _ = load_model("panda")
     for step in (250, 500):
         save_model(net, robot.name, tmp_path / "run" / "snapshots" / f"step_{step:06d}", {"training": {"steps": step}})
@@ -37,6 +37,18 @@ def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_pa
     assert choice["chosen"].endswith("step_000250.yaml") and choice["beats_baseline"] is False
     assert (tmp_path / "run" / "snapshots" / "choice.png").stat().st_size > 10_000
     assert "does NOT beat the bar" in run.stdout
+
+    # a third snapshot appears (another model: the small untrained one); run again: only it is scored
+    save_model(load_model(small_model_card)[0], "panda", tmp_path / "run" / "snapshots" / "step_000750", {})
+    again = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--frames", "3",
+                            "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen")],
+                           capture_output=True, text=True, cwd=ROOT, timeout=600, env=ENV)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    after = json.loads((tmp_path / "run" / "snapshots" / "choice.json").read_text())
+    assert [r["step"] for r in after["snapshots"]] == [250, 500, 750]
+    assert after["snapshots"][:2] == choice["snapshots"] and after["baseline"] is None
+    assert after["snapshots"][2]["mean_add_auc"] < choice["snapshots"][0]["mean_add_auc"]  # untrained: far worse
+    assert after["chosen"].endswith("step_000250.yaml") and after["beats_baseline"] is None
 
 
 def test_a_run_without_snapshots_is_refused(tmp_path):
