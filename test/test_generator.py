@@ -30,7 +30,7 @@ def check_frames(folder, robot: str, n: int):
         # projected_location is K P / z of the 3D keypoints
         np.testing.assert_allclose(frame.keypoints_2d, project(frame.keypoints_3d, frame.K), atol=0.01)
         # the 3D keypoints are FK(joints) moved by the base pose
-        fk = model.keypoints_in_camera(torch.from_numpy(frame.joints[None]), torch.from_numpy(frame.T_cam_base[None]))[0]
+        fk = model.keypoints_in_camera(torch.tensor(frame.joints[None]), torch.tensor(frame.T_cam_base[None]))[0]
         np.testing.assert_allclose(frame.keypoints_3d, fk.numpy(), atol=1e-4)
         # the mask covers every in-image keypoint (within 3 px), unless a distractor hides it
         mask = reader.load_mask(frame)
