@@ -59,14 +59,15 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
               threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool | None = None,
-              parts: bool | None = None, localize_size: int | None = None) -> dict:
+              parts: bool | None = None, localize_size: int | None = None, close_ups: bool | None = None) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
     Tracking needs a stream: a generated video plays in order; independent frames are each held for TRACKING_HOLD
     frames (stream_frames)."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
-                                     min_confidence=0.0, fit=fit, parts=parts, localize_size=localize_size)
+                                     min_confidence=0.0, fit=fit, parts=parts, localize_size=localize_size,
+                                     close_ups=close_ups)
     reader = DreamReader(data, estimator.robot)
     chosen, hold = stream_frames(reader, warmup + frames, tracking, cap=50)
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in chosen]
@@ -102,7 +103,8 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "params_m": sum(p.numel() for p in estimator.net.parameters()) / 1e6,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),
-        "backend": backend, "fit": estimator.fit, "parts": estimator.parts, "localize_size": estimator.localize_size,
+        "backend": backend, "fit": estimator.fit, "parts": estimator.parts, "close_ups": estimator.close_ups,
+        "localize_size": estimator.localize_size,
     }
 
 

@@ -70,7 +70,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from holo_pose_ros.evaluation.run import evaluate_folder, evaluate_methods, format_ablation
 
     estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking,
-                                     fit=args.fit, parts=args.parts, localize_size=args.localize_size)
+                                     fit=args.fit, parts=args.parts, localize_size=args.localize_size,
+                                     close_ups=args.close_ups)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     if args.ablation:
         reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet,
@@ -184,7 +185,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
                        threads=args.threads, backend=args.backend, fit=args.fit, parts=args.parts,
-                       localize_size=args.localize_size)
+                       localize_size=args.localize_size, close_ups=args.close_ups)
     print(format_benchmark(result))
     if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
@@ -279,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--parts", action=argparse.BooleanOptionalAction, default=None,
                    help="search the fit by parts, each chain swept two joints at a time (fitting/parts.py; "
                         "default: the model card's validated choice)")
+    e.add_argument("--close-ups", action=argparse.BooleanOptionalAction, default=None,
+                   help="a second pass on a close-up of each of the robot YAML's close_ups (an arm, a hand), whose "
+                        "detections of that part replace the crop's (default: the model card's validated choice)")
     e.add_argument("--localize-size", type=int, default=None, metavar="PX",
                    help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                         "keypoints); 0: the full network pass (default: the model card's choice, else the crop's size)")
@@ -380,6 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--parts", action=argparse.BooleanOptionalAction, default=None,
                    help="search the fit by parts, each chain swept two joints at a time (fitting/parts.py; "
                         "default: the model card's validated choice)")
+    m.add_argument("--close-ups", action=argparse.BooleanOptionalAction, default=None,
+                   help="a second pass on a close-up of each of the robot YAML's close_ups (an arm, a hand), whose "
+                        "detections of that part replace the crop's (default: the model card's validated choice)")
     m.add_argument("--localize-size", type=int, default=None, metavar="PX",
                    help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                         "keypoints); 0: the full network pass (default: the model card's choice, else the crop's size)")

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from holo_pose_ros.geometry.camera import in_image, project
-from holo_pose_ros.geometry.crop import (CROP_MARGIN, crop_affine, crop_box_from_keypoints, crop_image, full_image_box,
-                                         grid_to_frame_mask)
+from holo_pose_ros.geometry.crop import (CROP_MARGIN, MIN_CLOSE_UP_POINTS, crop_affine, crop_box_from_keypoints,
+                                         crop_image, full_image_box, grid_to_frame_mask)
 from holo_pose_ros.model.network import HolisticNet, Localizer, add_kinematics
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -25,6 +25,7 @@ BACKENDS = ("torch", "onnxruntime")
 METHODS = ("feed-forward", "lifter", "fitted")
 FIT_QUALITY_SCALE = 0.16  # of the fitted robot's image extent: a fit whose RMS residual is this halves the confidence
 LOCALIZE_MIN_KEYPOINT_CONFIDENCE = 0.2  # DREAM keypoints of the full-image pass that bound the crop box
+CLOSE_UP_MIN_KEYPOINT_CONFIDENCE = 0.2  # fit keypoints of the crop pass that bound a close-up's box
 
 
 @dataclass
@@ -61,6 +62,7 @@ class Detection:
     K_crop: np.ndarray                   # (3, 3) intrinsics of the crop
     mask: np.ndarray | None = None       # (H, W) bool robot foreground in image pixels (networks with segmentation)
     image_size: tuple[int, int] | None = None  # (W, H) pixels of the image it was detected in
+    close_up_boxes: dict[str, np.ndarray] = field(default_factory=dict)  # part -> (x0, y0, side) of its close-up
 
 
 def localize_pass_size(net: HolisticNet, localize_size: int | None) -> int | None:
@@ -99,7 +101,10 @@ class Estimator:
     (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
     chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss; on
     tracked frames too unless `parts_tracked` is off (its card's `estimator.parts_tracked`): a tracked frame also
-    starts from the previous frame's fit, which came out of the search already.
+    starts from the previous frame's fit, which came out of the search already. With `close_ups` (off unless asked
+    or its card's `estimator.close_ups` says so; a network trained with `close_up` views) each of the robot YAML's
+    `close_ups` (an arm, a hand) with enough confident keypoints in the crop pass gets a pass of its own, on a box
+    around them at the part's own scale, whose detections of that part's fit keypoints replace the crop pass's.
     The whole-image pass is the network's 2D-only `localize` (presence and DREAM's keypoints from their fit heatmaps;
     no depth, joints or 3D volume: the same box and presence as the full pass, for less) at `localize_size` px (a
     multiple of 32; None: the crop's size; `localizer`: what runs it, e.g. its ONNX export); 0, or a network without
@@ -111,7 +116,7 @@ class Estimator:
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
                  depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
                  parts: bool = False, parts_tracked: bool = True, localize_size: int | None = None,
-                 localizer: Callable | None = None):
+                 localizer: Callable | None = None, close_ups: bool = False):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -131,6 +136,11 @@ class Estimator:
         self.off_image_evidence = off_image_evidence
         self.parts, self.parts_tracked, self._parts_fitter = bool(parts), bool(parts_tracked), None
         self.silhouette = bool(silhouette)
+        self.close_ups = bool(close_ups)
+        self._close_up_points = robot.close_up_fit_indices()
+        if self.close_ups and not (net.cfg.fit_heatmaps and self._close_up_points):
+            raise ValueError(f"close_ups: the network '{net.cfg.name}' has no fit heatmaps or the robot YAML of "
+                             f"'{robot.name}' names no close_ups")
         if self.silhouette and not net.cfg.segmentation:
             raise ValueError(f"silhouette: the network '{net.cfg.name}' predicts no robot mask (segmentation: false)")
         fit_robot = RobotModel(robot.spec, dtype=torch.float64)
@@ -147,14 +157,14 @@ class Estimator:
                    **kwargs) -> "Estimator":
         """Load a shipped model by name ('panda') or a model card / weights path. `backend` 'onnxruntime' runs the
         network's ONNX export (made once, cached) with `threads` intra-op threads. The card's `estimator` section sets
-        `fit`, `silhouette`, `parts`, `parts_tracked` and `localize_size` unless given. A card that names no lifter (a training run's card) fits with the robot's
+        `fit`, `silhouette`, `parts`, `parts_tracked`, `close_ups` and `localize_size` unless given. A card that names no lifter (a training run's card) fits with the robot's
         shipped lifter, as the run's validation did."""
         from holo_pose_ros.model.weights import load_model
 
         if backend not in BACKENDS:
             raise ValueError(f"unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
         net, robot, card = load_model(model, device)
-        for key in ("fit", "silhouette", "parts", "parts_tracked"):  # the card's validated choice unless given
+        for key in ("fit", "silhouette", "parts", "parts_tracked", "close_ups"):  # the card's choice unless given
             validated = (card.get("estimator") or {}).get(key)
             if kwargs.get(key) is None and validated is not None:
                 kwargs[key] = bool(validated)
@@ -263,13 +273,35 @@ class Estimator:
             uv = np.concatenate([uv, np.zeros((M - len(uv), 2))])
             confidence = np.zeros(M)
             confidence[:self.robot.n_keypoints] = out["keypoint_confidence"][0].double().cpu().numpy()
+        close_up_boxes = {}
+        if self.close_ups:
+            uv, confidence, close_up_boxes = self._close_up_passes(image, K, uv, confidence, timings)
         mask = None
         if "mask_logits" in out:
             t0 = time.perf_counter()
             mask = grid_to_frame_mask(out["mask_logits"][0, 0].float().cpu().numpy(), box, self.size, W, H)
             timings["mask"] = (time.perf_counter() - t0) * 1e3
         return Detection(float(torch.sigmoid(out["presence_logit"][0])), box, uv, confidence, out,
-                         crop_affine(box, self.size) @ K, mask, (W, H))
+                         crop_affine(box, self.size) @ K, mask, (W, H), close_up_boxes)
+
+    def _close_up_passes(self, image: np.ndarray, K: np.ndarray, uv: np.ndarray, confidence: np.ndarray,
+                         timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """One pass per close-up part whose confident fit keypoints of the crop pass (image px) number at least
+        MIN_CLOSE_UP_POINTS, on their box (the crop recipe): its detections of the part's points replace the crop
+        pass's. Returns the new (M, 2) uv, (M,) confidences and each part's box; the 'close_ups' timing."""
+        t0 = time.perf_counter()
+        H, W = image.shape[:2]
+        uv, confidence, boxes = uv.copy(), confidence.copy(), {}
+        for name, idx in self._close_up_points.items():
+            seen = idx[(confidence[idx] >= CLOSE_UP_MIN_KEYPOINT_CONFIDENCE) & in_image(uv[idx], W, H)]
+            if len(seen) < MIN_CLOSE_UP_POINTS:
+                continue
+            boxes[name] = crop_box_from_keypoints(uv[seen], W, H, CROP_MARGIN)
+            part_uv, part_confidence = self._keypoints_2d(self._pass(self.network, image, boxes[name], self.size,
+                                                                     timings, K), boxes[name])
+            uv[idx], confidence[idx] = part_uv[idx], part_confidence[idx]
+        timings["close_ups"] = (time.perf_counter() - t0) * 1e3
+        return uv, confidence, boxes
 
     def estimate(self, image: np.ndarray, K: np.ndarray, known_joints: np.ndarray | None = None) -> Estimate:
         """Estimate the robot in one RGB image (H, W, 3 uint8) with intrinsics K (3, 3). `known_joints` (J,), when

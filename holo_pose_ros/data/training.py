@@ -4,7 +4,9 @@ as the deployed estimator would see it:
   - `crop`: the box the localizer would give (in-image keypoints, grown by the crop margin) with random shift,
     scale and aspect jitter, so imperfect boxes do not hurt;
   - `full`: the whole letterboxed frame (the localizer's pass);
-  - `negative`: a `crop` or `full` view with no robot (presence target 0).
+  - `negative`: a `crop` or `full` view with no robot (presence target 0);
+  - `close_up`: the box around one of the robot YAML's `close_ups` (an arm, a hand: its fit keypoints in the image),
+    jittered like a crop: the estimator's second pass at the part's own scale (`close_ups`). Only the 2D terms apply.
 Areas of a view outside the original frame are black, as in `crop_image`; the view's robot-foreground mask (S x S
 bool, the segmentation target) is false there. Sample i depends only on (seed, i)."""
 
@@ -17,9 +19,10 @@ import torch
 
 from holo_pose_ros.data.render import robot_foreground
 from holo_pose_ros.geometry.camera import in_image, project
-from holo_pose_ros.geometry.crop import CROP_MARGIN, crop_affine, crop_box_from_keypoints, full_image_box
+from holo_pose_ros.geometry.crop import (CROP_MARGIN, MIN_CLOSE_UP_POINTS, crop_affine, crop_box_from_keypoints,
+                                         full_image_box)
 
-MODES = ("crop", "full", "negative")
+MODES = ("crop", "full", "negative", "close_up")
 
 
 @dataclass(frozen=True)
@@ -29,7 +32,7 @@ class SampleConfig:
     input_size: int
     frame_width: int = 640
     frame_height: int = 480
-    mode_probabilities: tuple[float, float, float] = (0.75, 0.15, 0.10)
+    mode_probabilities: tuple[float, ...] = (0.75, 0.15, 0.10)  # crop, full, negative[, close_up]
     crop_margin: float = CROP_MARGIN  # the estimator's crop recipe: keypoint extent grown by this on each side
     shift_sigma: float = 0.08       # box centre jitter, in box sides
     scale_range: tuple[float, float] = (0.85, 1.3)
@@ -58,6 +61,11 @@ class RenderedViews(torch.utils.data.Dataset):
         self.robot_name, self.cfg, self.gen_cfg, self.seed, self.length = robot, sample_cfg, generator_cfg, seed, length
         self.max_faces = max_faces
         self._state = None  # built lazily in the process that renders (DataLoader workers)
+        if mode_probabilities(sample_cfg.mode_probabilities)[MODES.index("close_up")] > 0:
+            from holo_pose_ros.robots.spec import load_robot_spec
+
+            if not load_robot_spec(robot).close_ups:
+                raise ValueError(f"close-up views asked for, but the robot YAML of '{robot}' names no close_ups")
 
     def __len__(self) -> int:
         return self.length
@@ -71,6 +79,7 @@ class RenderedViews(torch.utils.data.Dataset):
             model = RobotModel(self.robot_name, dtype=torch.float64)
             meshes = load_link_meshes(model, self.max_faces)
             self._state = (model, meshes, Renderer(self.cfg.input_size, self.cfg.input_size))
+            self._close_ups = model.close_up_fit_indices()
         return self._state
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
@@ -88,11 +97,16 @@ class RenderedViews(torch.utils.data.Dataset):
         links = model.link_transforms(q)
         kp_base = torch.stack([links[k.link][0, :3, 3] for k in model.spec.keypoints]).numpy()
         kp_cam = kp_base @ scene.T_cam_base[:3, :3].T + scene.T_cam_base[:3, 3]
-        mode = MODES[rng.choice(3, p=cfg.mode_probabilities)]
+        mode = MODES[rng.choice(len(MODES), p=mode_probabilities(cfg.mode_probabilities))]
         view = ("crop", "full")[rng.integers(2)] if mode == "negative" else mode
+        fit_cam = model.fit_keypoints_in_camera(q, torch.from_numpy(scene.T_cam_base))[0].numpy()
+        if view == "close_up":
+            box = self._close_up_box(project(fit_cam, K), rng)
+            if box is None:  # no part in view: a crop of the whole robot
+                mode = view = "crop"
         if view == "full":
             box = full_image_box(W, H)
-        else:
+        elif view == "crop":
             box = jitter_box(crop_box_from_keypoints(project(kp_cam, K), W, H, cfg.crop_margin), rng, cfg)
         K_crop = crop_affine(box, S) @ K
         robot = {} if mode == "negative" else meshes
@@ -109,7 +123,6 @@ class RenderedViews(torch.utils.data.Dataset):
         T_cam_root = scene.T_cam_base @ links[model.spec.keypoints[model.root_index].link][0].numpy()
         uv = project(kp_cam, K_crop)
         visible = (uv >= -0.5).all(1) & (uv <= S - 0.5).all(1) & in_image(project(kp_cam, K), W, H)
-        fit_cam = model.fit_keypoints_in_camera(q, torch.from_numpy(scene.T_cam_base))[0].numpy()
         uv_fit = project(fit_cam, K_crop)
         visible_fit = (uv_fit >= -0.5).all(1) & (uv_fit <= S - 0.5).all(1) & in_image(project(fit_cam, K), W, H)
         f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
@@ -120,3 +133,25 @@ class RenderedViews(torch.utils.data.Dataset):
             "presence": torch.tensor(float(mode != "negative")), "mode": torch.tensor(MODES.index(mode)),
             "mask": torch.from_numpy(foreground),
         }
+
+    def _close_up_box(self, uv_fit_image: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+        """A jittered box around one of the robot's close-up parts, drawn among those with MIN_CLOSE_UP_POINTS fit
+        keypoints in the image (all fit keypoints' image px in; through the crop recipe), or None when none has."""
+        W, H = self.cfg.frame_width, self.cfg.frame_height
+        seen = in_image(uv_fit_image, W, H)
+        parts = [idx[seen[idx]] for idx in self._close_ups.values()]
+        parts = [idx for idx in parts if len(idx) >= MIN_CLOSE_UP_POINTS]
+        if not parts:
+            return None
+        idx = parts[rng.integers(len(parts))]
+        return jitter_box(crop_box_from_keypoints(uv_fit_image[idx], W, H, self.cfg.crop_margin), rng, self.cfg)
+
+
+def mode_probabilities(probabilities: tuple[float, ...]) -> np.ndarray:
+    """The four modes' probabilities from a config's three (crop, full, negative: no close-ups) or four."""
+    p = np.zeros(len(MODES))
+    if len(probabilities) not in (3, 4) or any(x < 0 for x in probabilities) or not np.isclose(sum(probabilities), 1):
+        raise ValueError(f"mode_probabilities: 3 or 4 non-negative numbers (crop, full, negative[, close_up]) that sum "
+                         f"to 1, got {list(probabilities)}")
+    p[:len(probabilities)] = probabilities
+    return p

@@ -10,6 +10,7 @@ import numpy as np
 from holo_pose_ros.geometry.camera import in_image
 
 CROP_MARGIN = 0.3  # the crop recipe of training and inference: keypoint extent grown by this on each side
+MIN_CLOSE_UP_POINTS = 3  # a close-up part with fewer fit keypoints in the image is not cropped on its own
 
 
 def crop_affine(box: np.ndarray, size: int) -> np.ndarray:

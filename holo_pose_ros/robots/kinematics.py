@@ -8,6 +8,7 @@ import io
 import os
 from pathlib import Path
 
+import numpy as np
 import pytorch_kinematics as pk
 import torch
 import yourdfpy
@@ -154,6 +155,26 @@ class RobotModel:
                 up = parent_of.get(up)
             parents.append(index[up] if up is not None else -1)
         return parents
+
+    def close_up_fit_indices(self) -> dict[str, np.ndarray]:
+        """For each of the YAML's `close_ups`, the indices of the fit keypoints on the links of its subtree (the
+        part's link and every link below it). ValueError naming the YAML for a link the URDF lacks."""
+        below: dict[str, list[str]] = {}
+        for joint in self.urdf.robot.joints:
+            below.setdefault(joint.parent, []).append(joint.child)
+        links = [k.link for k in self.spec.fit_keypoints]
+        out = {}
+        for name, top in self.spec.close_ups.items():
+            if top not in self.urdf.link_map:
+                raise ValueError(f"{self.spec.source_file}: close-up '{name}' starts at link '{top}', which the URDF "
+                                 "does not have")
+            subtree, stack = set(), [top]
+            while stack:
+                link = stack.pop()
+                subtree.add(link)
+                stack.extend(below.get(link, []))
+            out[name] = np.array([i for i, link in enumerate(links) if link in subtree], dtype=int)
+        return out
 
     # -- kinematics ------------------------------------------------------------------------------------------
     def _as_batch(self, q) -> torch.Tensor:

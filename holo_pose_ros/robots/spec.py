@@ -61,6 +61,7 @@ class RobotSpec:
     fixed_joints: dict[str, float] = field(default_factory=dict)
     constants: dict[str, float] = field(default_factory=dict)
     extra_fit_keypoints: tuple[FitKeypointSpec, ...] = ()
+    close_ups: dict[str, str] = field(default_factory=dict)  # part name -> the URDF link whose subtree it is
     source_file: str | None = None
 
     @property
@@ -105,6 +106,14 @@ def _fit_keypoints(entries: list, where: str) -> tuple[FitKeypointSpec, ...]:
     return tuple(out)
 
 
+def _close_ups(entries, where: str) -> dict[str, str]:
+    """The YAML's `close_ups` ({name: link}): the robot's parts that the estimator may crop on their own (an arm,
+    a hand) for a second pass at their own scale, each the subtree of URDF link `link`."""
+    if not isinstance(entries, dict) or not all(isinstance(v, str) and v for v in entries.values()):
+        raise ValueError(f"{where}: 'close_ups' must map each part's name to the URDF link its subtree starts at")
+    return {str(k): v for k, v in entries.items()}
+
+
 def load_robot_spec(robot: str | Path) -> RobotSpec:
     """Load a robot by shipped name ('panda', 'kuka', 'baxter') or by path to a robot YAML file."""
     path = Path(robot)
@@ -136,6 +145,7 @@ def load_robot_spec(robot: str | Path) -> RobotSpec:
         fixed_joints={str(k): float(v) for k, v in (data.get("fixed_joints") or {}).items()},
         constants={str(k): float(v) for k, v in (data.get("constants") or {}).items()},
         extra_fit_keypoints=_fit_keypoints(data.get("fit_keypoints") or [], where),
+        close_ups=_close_ups(data.get("close_ups") or {}, where),
         source_file=where,
     )
     names = [k.name for k in spec.fit_keypoints]

@@ -1,5 +1,5 @@
 """Supervised losses (paper §3.5, reference §5.1), each masked to the samples it applies to: 3D terms on `crop`
-views, 2D keypoints on every view with a robot, presence on all. Metres, crop pixels / S, normalized joints."""
+views, 2D keypoints on every view with a robot (`close_up` views too), presence on all. Metres, crop pixels / S, normalized joints."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from holo_pose_ros.data.training import MODES
 from holo_pose_ros.model.heatmaps import expected_positions, gaussian_targets, heatmap_cross_entropy
 
-CROP, FULL, NEGATIVE = (MODES.index(m) for m in MODES)
+CROP, FULL, NEGATIVE, CLOSE_UP = (MODES.index(m) for m in ("crop", "full", "negative", "close_up"))
 
 
 def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
