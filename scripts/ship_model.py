@@ -5,7 +5,8 @@ lifter ships beside it (<name>_lifter.*, named in the card) and each test set al
 / lifter / fitted / fitted with the true joints); `--log` keeps the run's learning curve in docs/training_logs/.
 A test folder of the unseen look (config/generate/unseen.yaml) also becomes the card's `domain_shift` figure.
 The validation folders choose the default method (`estimator.fit`) and whether the fit searches by parts
-(`estimator.parts`, fitting/parts.py); the tests and their ablation then run with that choice. With the search
+(`estimator.parts`, fitting/parts.py) and, for a run trained with close-up views, whether it adds the close-up pass
+(`estimator.close_ups`); the tests and their ablation then run with that choice. With the search
 and `--validation-video` (generated videos, config/generate/video.yaml), tracking them chooses whether tracked
 frames search too (`estimator.parts_tracked`; scripts/choose_tracked_search.py does it for a shipped card).
 
@@ -90,13 +91,16 @@ def main(argv: list[str] | None = None) -> int:
                               "validation_by_folder": {folder: {m: {"add_auc": r["add_auc"], "add_mean_mm": r["add_mean_mm"]}
                                                                 for m, r in a.items()} for folder, a in ablations.items()}}
         print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
+        if fit and trained_with_close_ups(card):
+            extra["estimator"].update(close_ups_choice(net, robot, lifter, args.validation, extra["estimator"]))
         if extra["estimator"]["parts"] and args.validation_video:
             extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video,
                                                             args.tracked_search_min_gain))
         elif args.validation_video:
             print("validation videos not tracked: the search by parts is off, so tracked frames fit plainly anyway")
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
-    metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test)
+    metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test,
+                          bool(extra.get("estimator", {}).get("close_ups")))
     if args.log:
         run = run_folder(args.card).name
         (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
@@ -115,6 +119,29 @@ def main(argv: list[str] | None = None) -> int:
                      dtype=torch.float16)
     print(f"shipped: {out}")
     return 0
+
+
+def trained_with_close_ups(card: dict) -> bool:
+    """Whether a run's card was trained with close-up views (its recipe's fourth mode probability is > 0)."""
+    probabilities = (((card.get("training") or {}).get("config") or {}).get("views") or {}).get("mode_probabilities")
+    return bool(probabilities and len(probabilities) == 4 and probabilities[3] > 0)
+
+
+def close_ups_choice(net, robot, lifter, folders: list[str], chosen: dict) -> dict:
+    """The card's `estimator.close_ups` and its evidence: the validation folders estimated as chosen (fitted, by
+    parts or not) with the close-up pass, kept where it raises the mean AUC over the folders (it costs a network
+    pass per part)."""
+    rows = {}
+    for folder in folders:
+        estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=bool(chosen["parts"]), close_ups=True)
+        report, _, _ = evaluate_folder(estimator, DreamReader(folder, robot), depth_diagnostics=False)
+        rows[folder] = {"add_auc": report["add_auc"], "add_mean_mm": report["add_mean_mm"]}
+    without = BY_PARTS if chosen["parts"] else "fitted"
+    mean_with = sum(r["add_auc"] for r in rows.values()) / len(rows)
+    choice = bool(mean_with > chosen["validation"][without]["add_auc"])
+    print(f"close-ups: {'on' if choice else 'off'} (mean AUC {mean_with:.2f} with, "
+          f"{chosen['validation'][without]['add_auc']:.2f} without)")
+    return {"close_ups": choice, "close_ups_validation": rows}
 
 
 def run_folder(card: str | Path) -> Path:
@@ -144,25 +171,28 @@ def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: f
             "tracking_min_gain_auc": min_gain_auc}
 
 
-def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, tests: list[str]) -> dict:
+def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, tests: list[str],
+                close_ups: bool = False) -> dict:
     """The card's `test` section: each DIR:LOOK folder scored through the deployed estimator (the report's KEPT
     keys, depth diagnostics included) and, with a lifter, its ablation; `name` is the model as users call it."""
     metrics = {}
     for item in tests:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts, close_ups=close_ups)
         report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
             "command": f"holo-pose evaluate --model {name} --data {folder} --out report.json",
-            "method": ("fitted" if estimator.fit else "feed-forward") + (" by parts" if estimator.fit and parts else ""),
+            "method": ("fitted" if estimator.fit else "feed-forward") + (" by parts" if estimator.fit and parts else "")
+                      + (", close-ups" if close_ups else ""),
             **{k: report[k] for k in KEPT if k in report},
         }
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
               f"not found {report['n_not_found']}/{report['n_frames']}")
         if lifter is not None:
-            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts), reader, depth_diagnostics=False)
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts, close_ups=close_ups), reader,
+                                        depth_diagnostics=False)
             print(format_ablation(ablation))
             metrics[look or Path(folder).name]["ablation"] = {
                 "command": f"holo-pose evaluate --model {name} --data {folder} --ablation",
