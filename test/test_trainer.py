@@ -216,3 +216,28 @@ def test_style_noise_restyles_the_frozen_blocks_output_and_needs_them(tmp_path):
     with pytest.raises(ValueError, match="style_noise needs"):
         Trainer({**tiny_config(tmp_path / "bad"), "style_noise": {"probability": 0.5}}, device="cpu",
                 progress=False)._attach_style_noise()
+
+
+def test_a_run_with_close_up_views_trains_their_2d_terms_only(tmp_path):
+    """A fourth mode probability draws close-up views (data/training.py) into the batches: the heatmaps learn from
+    them, the 3D terms only from the robot's crops. A batch of close-ups alone has a heatmap loss and no 3D loss."""
+    from holo_pose_ros.data.generator import load_generator_config
+    from holo_pose_ros.data.training import RenderedViews, SampleConfig
+    from holo_pose_ros.model.network import add_kinematics
+    from holo_pose_ros.train.losses import supervised_losses
+
+    cfg = {**tiny_config(tmp_path / "close"), "views": {"mode_probabilities": [0.4, 0.2, 0.1, 0.3]}}
+    trainer = Trainer(cfg, device="cpu", progress=False)
+    assert trainer.run().is_file()
+    views = RenderedViews("panda", SampleConfig(64, mode_probabilities=(0, 0, 0, 1)),
+                          load_generator_config("randomized"), seed=3, length=6)
+    samples = [v for v in (views[i] for i in range(6)) if int(v["mode"]) == 3]  # a hand out of view: a crop
+    assert len(samples) >= 3
+    batch = torch.utils.data.default_collate(samples)
+    net = trainer.net.eval()
+    with torch.no_grad():
+        out = add_kinematics(trainer.robot, net(batch["image"], batch["K_crop"]))
+        terms = supervised_losses(out, batch, net.joint_mid, net.joint_half, 64, net.cfg.heatmap_sigma)
+    assert float(terms["heatmap"]) > 0 and float(terms["kp2d_reg"]) > 0
+    assert {k: float(terms[k]) for k in ("joints", "rotation", "translation", "depth", "kp3d_reg", "kp3d_fk")} == \
+        dict.fromkeys(("joints", "rotation", "translation", "depth", "kp3d_reg", "kp3d_fk"), 0.0)
