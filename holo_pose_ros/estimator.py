@@ -138,7 +138,8 @@ class Estimator:
         self.silhouette = bool(silhouette)
         self.close_ups = bool(close_ups)
         self._close_up_points = robot.close_up_fit_indices()
-        if self.close_ups and not (net.cfg.fit_heatmaps and self._close_up_points):
+        self.can_close_up = bool(net.cfg.fit_heatmaps and self._close_up_points)
+        if self.close_ups and not self.can_close_up:
             raise ValueError(f"close_ups: the network '{net.cfg.name}' has no fit heatmaps or the robot YAML of "
                              f"'{robot.name}' names no close_ups")
         if self.silhouette and not net.cfg.segmentation:

@@ -169,6 +169,10 @@ def test_outputs_carry_the_image_header_and_match_the_core(graphs, card, frame):
     assert g.node.set_parameters([Parameter("parts", value="true")])[0].successful and g.node.estimator.parts
     assert g.node.set_parameters([Parameter("parts", value="auto")])[0].successful
     assert g.node.estimator.parts == bool((read_card(g.node.model)[1].get("estimator") or {}).get("parts", False))
+    assert g.node.set_parameters([Parameter("close_ups", value="true")])[0].successful and g.node.estimator.close_ups
+    assert g.node.set_parameters([Parameter("close_ups", value="auto")])[0].successful
+    assert g.node.estimator.close_ups == bool((read_card(g.node.model)[1].get("estimator") or {}).get("close_ups", False))
+    assert not g.node.set_parameters([Parameter("close_ups", value="often")])[0].successful
     assert g.node.set_parameters([Parameter("min_confidence", value=1.0)])[0].successful
     lost = header(1002)
     assert g.spin_until(lambda: g.node.stats.not_found >= 1, image=rgb_to_image(image, lost),

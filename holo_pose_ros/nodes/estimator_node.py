@@ -70,6 +70,9 @@ PARAMETERS: ParameterSpecs = {
     "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (20-30 ms a "
               "frame more; auto: the model card's validated choice); when tracking, tracked frames search too only "
               "where the card chose it (estimator.parts_tracked).", False, {}),
+    "close_ups": ("auto | true | false: a second network pass on a close-up of each of the robot YAML's close_ups "
+                  "(an arm, a hand), whose detections of that part replace the crop's (one pass per part more; auto: "
+                  "the model card's validated choice).", False, {}),
     "localize_size": ("Input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                       "keypoints); 0: the full network pass; -1: the model card's choice, else the crop's size.", True,
                       dict(integer_range=[IntegerRange(from_value=-1, to_value=1024)])),
@@ -96,7 +99,7 @@ FIT_MODES = {"auto": None, "true": True, "false": False}
 
 
 def _fit_mode(value: str, name: str = "fit") -> bool | None:
-    """The `fit` (or `parts`) parameter as the estimator's argument (None: auto)."""
+    """The `fit` (or `parts`, `close_ups`) parameter as the estimator's argument (None: auto)."""
     mode = str(value).strip().lower()
     if mode not in FIT_MODES:
         raise ValueError(f"{name} must be one of {', '.join(FIT_MODES)}, got {value!r}")
@@ -248,6 +251,7 @@ class EstimatorNode(Node):
         self.estimator = Estimator.from_model(p["model"], device, backend=backend, threads=p["threads"] or None,
                                               tracking=p["tracking"], min_confidence=p["min_confidence"],
                                               fit=_fit_mode(p["fit"]), parts=_fit_mode(p["parts"], "parts"),
+                                              close_ups=_fit_mode(p["close_ups"], "close_ups"),
                                               localize_size=None if p["localize_size"] < 0 else p["localize_size"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
@@ -265,6 +269,7 @@ class EstimatorNode(Node):
         self._validated_fit = self.estimator.fit if _fit_mode(p["fit"]) is None else bool(
             validated.get("fit", self.estimator.auto_fit))
         self._validated_parts = bool(validated.get("parts", False))
+        self._validated_close_ups = bool(validated.get("close_ups", False))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -319,13 +324,17 @@ class EstimatorNode(Node):
 
     # -- parameters and logging ------------------------------------------------------------------------------
     def _check_parameters(self, parameters: list) -> SetParametersResult:
-        """Refuse values the descriptors cannot express (the `fit` and `parts` modes)."""
+        """Refuse values the descriptors cannot express (the `fit`, `parts` and `close_ups` modes), and close-ups
+        for a robot or network that has none."""
         for param in parameters:
-            if param.name in ("fit", "parts"):
+            if param.name in ("fit", "parts", "close_ups"):
                 try:
-                    _fit_mode(param.value, param.name)
+                    mode = _fit_mode(param.value, param.name)
                 except ValueError as e:
                     return SetParametersResult(successful=False, reason=str(e))
+                if param.name == "close_ups" and mode and not self.estimator.can_close_up:
+                    return SetParametersResult(successful=False, reason=f"close_ups: robot '{self.estimator.robot.name}'"
+                                               " names no close_ups or its network has no fit heatmaps")
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list) -> None:
@@ -342,6 +351,9 @@ class EstimatorNode(Node):
             elif param.name == "parts":
                 mode = _fit_mode(param.value, "parts")
                 self.estimator.parts = self._validated_parts if mode is None else mode
+            elif param.name == "close_ups":
+                mode = _fit_mode(param.value, "close_ups")
+                self.estimator.close_ups = self._validated_close_ups if mode is None else mode
             elif param.name in ("publish_annotated", "publish_tf"):
                 setattr(self, param.name, param.value)
 
