@@ -65,6 +65,15 @@ def shipped_point(robot: str) -> dict | None:
             "auc": validation.get("add_auc")}
 
 
+def shipped_run(robot: str) -> str | None:
+    """The training run of `robot`'s shipped model (its card's `training.config.out` folder name), or None."""
+    card = ROOT / "holo_pose_ros" / "weights" / f"{robot}.yaml"
+    if not card.exists():
+        return None
+    out = (((yaml.safe_load(card.read_text()) or {}).get("training") or {}).get("config") or {}).get("out")
+    return Path(out).name if out else None
+
+
 def kept_row(rows: list[dict]) -> dict:
     """The validation row a run keeps: its lowest median 2D error of the fit keypoints (the trainer's `best`)."""
     return min(rows, key=lambda r: r["val_kp2d_fit_median_px"])
@@ -72,13 +81,15 @@ def kept_row(rows: list[dict]) -> dict:
 
 def trend(runs: dict[str, list[dict]], robot: str, n_runs: int, target_px: float) -> dict | None:
     """Power law px = c * views^-alpha through the kept points (lowest fit-keypoint error) of the last `n_runs` runs
-    of `robot`'s current recipe (runs named like its newest one up to the run number and a `_not_shipped`), and the views and training
+    of `robot`'s current recipe (runs named like its shipped model's run, else its newest, up to the run number and a
+    `_not_shipped`), and the views and training
     hours (at those runs' mean views/s) at which it reaches `target_px`; None with fewer than two such runs."""
     names = [name for name in runs if name.split("_")[0] == robot]
     if not names:
         return None
     run_number = r"\d*(_not_shipped)?"  # a run that lost to the shipped one is still a point of its recipe's curve
-    recipe = re.sub(run_number + "$", "", names[-1])
+    shipped = shipped_run(robot)  # a new recipe's views may restart at 0 (another robot's donor): the shipped run says
+    recipe = re.sub(run_number + "$", "", shipped if shipped in names else names[-1])
     every = [name for name in names if re.fullmatch(re.escape(recipe) + run_number, name)]
     family = every[-n_runs:]
     if len(family) < 2:
