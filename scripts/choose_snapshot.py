@@ -34,10 +34,9 @@ from holo_pose_ros.model.lifter import load_lifter, shipped_lifter  # noqa: E402
 from holo_pose_ros.model.weights import load_model  # noqa: E402
 
 
-def score(card_path: Path, lifter_path: Path, folders: list[str], frames: int | None) -> dict:
-    """ADD AUC and mean ADD (mm) of one model card on each folder, fitted by parts with the given lifter."""
+def score(card_path: Path, lifter, folders: list[str], frames: int | None) -> dict:
+    """ADD AUC and mean ADD (mm) of one model card on each folder, fitted by parts with the given (loaded) lifter."""
     net, robot, _ = load_model(card_path)
-    lifter = load_lifter(lifter_path)
     scores = {}
     for folder in folders:
         estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True)
@@ -109,14 +108,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.baseline:
         base_path, base_card = read_card(args.baseline)
         base_lifter = base_path.parent / base_card["lifter"] if "lifter" in base_card else lifter
-        scores = score(base_path, base_lifter, args.validation, args.frames)
+        scores = score(base_path, load_lifter(base_lifter), args.validation, args.frames)
         baseline = {"card": args.baseline, "scores": scores, "mean_add_auc": mean_auc(scores)}
         print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f} "
               + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
     done = scored_before(folder / "choice.json", args.frames, lifter, args.validation)
+    snapshot_lifter = load_lifter(lifter)  # one lifter for every snapshot: loaded once
     rows = []
     for card in tqdm(cards, desc="snapshots", unit="model"):
-        scores = done.get(str(card)) or score(card, lifter, args.validation, args.frames)
+        scores = done.get(str(card)) or score(card, snapshot_lifter, args.validation, args.frames)
         rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "scores": scores,
                      "mean_add_auc": mean_auc(scores)})
         tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f} "

@@ -61,7 +61,8 @@ class RenderedViews(torch.utils.data.Dataset):
         self.robot_name, self.cfg, self.gen_cfg, self.seed, self.length = robot, sample_cfg, generator_cfg, seed, length
         self.max_faces = max_faces
         self._state = None  # built lazily in the process that renders (DataLoader workers)
-        if mode_probabilities(sample_cfg.mode_probabilities)[MODES.index("close_up")] > 0:
+        self._mode_p = mode_probabilities(sample_cfg.mode_probabilities)  # checked once, drawn from per sample
+        if self._mode_p[MODES.index("close_up")] > 0:
             from holo_pose_ros.robots.spec import load_robot_spec
 
             if not load_robot_spec(robot).close_ups:
@@ -97,7 +98,7 @@ class RenderedViews(torch.utils.data.Dataset):
         links = model.link_transforms(q)
         kp_base = torch.stack([links[k.link][0, :3, 3] for k in model.spec.keypoints]).numpy()
         kp_cam = kp_base @ scene.T_cam_base[:3, :3].T + scene.T_cam_base[:3, 3]
-        mode = MODES[rng.choice(len(MODES), p=mode_probabilities(cfg.mode_probabilities))]
+        mode = MODES[rng.choice(len(MODES), p=self._mode_p)]
         view = ("crop", "full")[rng.integers(2)] if mode == "negative" else mode
         fit_cam = model.fit_keypoints_in_camera(q, torch.from_numpy(scene.T_cam_base))[0].numpy()
         if view == "close_up":
