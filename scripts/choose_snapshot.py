@@ -6,8 +6,9 @@ camera). With `validation.snapshots: true` it also keeps every validated model (
 each of them, and optionally the shipped model as the bar, through the deployed estimator fitted by parts on the
 first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
 mean ADD AUC over the folders (ties: the earliest). It writes snapshots/choice.json and choice.png (AUC by step,
-one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py. A snapshot already in
-choice.json with the same frames, lifter and folders is not scored again, so it can run while the run trains.
+one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar)
+already in choice.json with the same weights (sha256), frames, lifter and folders is not scored again, so it can run
+while the run trains; a run started afresh over old snapshots is scored afresh.
 
     python scripts/choose_snapshot.py runs/kuka_pyramid224_cpu2 --baseline kuka \\
         --validation data/kuka_val_1012 --validation data/kuka_val_unseen_1013 --validation data/kuka_val_unseen_1014
@@ -29,7 +30,7 @@ from tqdm import tqdm  # noqa: E402
 from holo_pose_ros.data.dream import DreamReader  # noqa: E402
 from holo_pose_ros.estimator import Estimator  # noqa: E402
 from holo_pose_ros.evaluation.run import evaluate_folder  # noqa: E402
-from holo_pose_ros.model.cards import read_card  # noqa: E402
+from holo_pose_ros.model.cards import file_sha256, read_card  # noqa: E402
 from holo_pose_ros.model.lifter import load_lifter, shipped_lifter  # noqa: E402
 from holo_pose_ros.model.weights import load_model  # noqa: E402
 
@@ -47,15 +48,24 @@ def score(card_path: Path, lifter, folders: list[str], frames: int | None) -> di
     return scores
 
 
+def weights_digest(card: str | Path) -> str:
+    """The sha256 of a model card's weights file: what a score belongs to (a snapshot's path is reused when a run
+    is started afresh)."""
+    card_path, content = read_card(card)
+    return file_sha256(card_path.parent / content["weights"])
+
+
 def scored_before(path: Path, frames: int, lifter: Path, folders: list[str]) -> dict:
-    """Scores of an earlier choice.json made with the same frames, lifter and folders, by snapshot card: a run's
-    snapshots can be scored while it trains and only the new ones scored at its end."""
+    """Scores of an earlier choice.json made with the same frames, lifter and folders, by weights digest (the
+    snapshots' and the bar's): a run's snapshots can be scored while it trains and only the new ones scored at its
+    end. Keyed by (weights sha256, lifter path)."""
     if not path.exists():
         return {}
     before = json.loads(path.read_text())
     if (before.get("frames"), before.get("lifter"), before.get("validation")) != (frames, str(lifter), folders):
         return {}
-    return {row["card"]: row["scores"] for row in before.get("snapshots", [])}
+    rows = [*before.get("snapshots", []), *([before["baseline"]] if before.get("baseline") else [])]
+    return {(row["sha256"], row.get("lifter", str(lifter))): row["scores"] for row in rows if "sha256" in row}
 
 
 def mean_auc(scores: dict) -> float:
@@ -104,23 +114,30 @@ def main(argv: list[str] | None = None) -> int:
     if lifter is None:
         print(f"error: no shipped lifter for {robot}: name one with --lifter", file=sys.stderr)
         return 1
+    done = scored_before(folder / "choice.json", args.frames, lifter, args.validation)
     baseline = None
     if args.baseline:
         base_path, base_card = read_card(args.baseline)
         base_lifter = base_path.parent / base_card["lifter"] if "lifter" in base_card else lifter
-        scores = score(base_path, load_lifter(base_lifter), args.validation, args.frames)
-        baseline = {"card": args.baseline, "scores": scores, "mean_add_auc": mean_auc(scores)}
+        digest = weights_digest(base_path)
+        before = done.get((digest, str(base_lifter)))
+        scores = before or score(base_path, load_lifter(base_lifter), args.validation, args.frames)
+        baseline = {"card": args.baseline, "sha256": digest, "lifter": str(base_lifter), "scores": scores,
+                    "mean_add_auc": mean_auc(scores)}
         print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f} "
-              + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
-    done = scored_before(folder / "choice.json", args.frames, lifter, args.validation)
+              + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items())
+              + (" (scored before)" if before else ""))
     snapshot_lifter = load_lifter(lifter)  # one lifter for every snapshot: loaded once
     rows = []
     for card in tqdm(cards, desc="snapshots", unit="model"):
-        scores = done.get(str(card)) or score(card, snapshot_lifter, args.validation, args.frames)
-        rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "scores": scores,
+        digest = weights_digest(card)
+        before = done.get((digest, str(lifter)))
+        scores = before or score(card, snapshot_lifter, args.validation, args.frames)
+        rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "sha256": digest, "scores": scores,
                      "mean_add_auc": mean_auc(scores)})
         tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f} "
-                   + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items()))
+                   + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items())
+                   + (" (scored before)" if before else ""))
     chosen = max(rows, key=lambda r: (r["mean_add_auc"], -r["step"]))
     result = {"criterion": "mean ADD AUC over the validation folders, fitted by parts", "frames": args.frames,
               "lifter": str(lifter), "validation": args.validation, "baseline": baseline, "snapshots": rows,

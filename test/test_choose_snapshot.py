@@ -1,7 +1,8 @@
 """scripts/choose_snapshot.py on a run folder whose two snapshots hold the shipped Panda weights: every snapshot
 and the bar (the shipped model) are scored on the same generated frames of two looks, identical weights score
 identically, a tie goes to the earliest step and does not count as beating the bar; a run without snapshots is
-refused with the reason; a second run scores only the snapshots that are new."""
+refused with the reason; a second run scores only the weights it has not scored (a new snapshot, one overwritten
+by a run started afresh), the bar included: scores are keyed by the weights' sha256, not by the snapshot's path."""
 
 from __future__ import annotations
 
@@ -39,16 +40,35 @@ def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_pa
     assert "does NOT beat the bar" in run.stdout
 
     # a third snapshot appears (another model: the small untrained one); run again: only it is scored
-    save_model(load_model(small_model_card)[0], "panda", tmp_path / "run" / "snapshots" / "step_000750", {})
-    again = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--frames", "3",
+    small = load_model(small_model_card)[0]
+    save_model(small, "panda", tmp_path / "run" / "snapshots" / "step_000750", {})
+    again = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--baseline", "panda", "--frames", "3",
                             "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen")],
                            capture_output=True, text=True, cwd=ROOT, timeout=600, env=ENV)
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     after = json.loads((tmp_path / "run" / "snapshots" / "choice.json").read_text())
     assert [r["step"] for r in after["snapshots"]] == [250, 500, 750]
-    assert after["snapshots"][:2] == choice["snapshots"] and after["baseline"] is None
+    assert after["snapshots"][:2] == choice["snapshots"] and after["baseline"] == choice["baseline"]
     assert after["snapshots"][2]["mean_add_auc"] < choice["snapshots"][0]["mean_add_auc"]  # untrained: far worse
-    assert after["chosen"].endswith("step_000250.yaml") and after["beats_baseline"] is None
+    assert after["chosen"].endswith("step_000250.yaml") and after["beats_baseline"] is False
+    bar_line = next(line for line in again.stdout.splitlines() if line.startswith("bar panda"))
+    assert bar_line.endswith("(scored before)") and "step_000750: " in again.stdout
+    assert again.stdout.count("(scored before)") == 3  # the bar, steps 250 and 500; 750 is new
+
+    # a run started afresh overwrites step 500 with other weights (the small model's, scored as step 750): its
+    # figures follow its weights, not its path
+    save_model(small, "panda", tmp_path / "run" / "snapshots" / "step_000500", {})
+    (tmp_path / "run" / "snapshots" / "step_000750.yaml").unlink()
+    (tmp_path / "run" / "snapshots" / "step_000750.safetensors").unlink()
+    fresh = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--frames", "3",
+                            "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen")],
+                           capture_output=True, text=True, cwd=ROOT, timeout=600, env=ENV)
+    assert fresh.returncode == 0, fresh.stdout[-3000:] + fresh.stderr[-3000:]
+    last = json.loads((tmp_path / "run" / "snapshots" / "choice.json").read_text())
+    assert [r["step"] for r in last["snapshots"]] == [250, 500]
+    assert last["snapshots"][1]["scores"] == after["snapshots"][2]["scores"]  # the small model's figures
+    assert last["snapshots"][1]["sha256"] != choice["snapshots"][1]["sha256"]
+    assert last["snapshots"][0] == choice["snapshots"][0] and fresh.stdout.count("(scored before)") == 2
 
 
 def test_a_run_without_snapshots_is_refused(tmp_path):
