@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from holo_pose_ros.geometry.alignment import matrix_to_quaternion_xyzw
+from holo_pose_ros.geometry.alignment import rotation_log
 
 MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation of a normal distribution
 
@@ -25,15 +25,6 @@ class Calibration:
     n_rejected: int                 # frames of the window rejected as outliers
     translation_spread_m: float     # RMS distance of the inliers to the average
     rotation_spread_deg: float      # RMS angle of the inliers to the average
-
-
-def rotation_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), radians, through the unit quaternion (w >= 0):
-    2 atan2(|xyz|, w) along xyz, well defined up to an angle of pi."""
-    q = matrix_to_quaternion_xyzw(R)
-    xyz, w = q[..., :3], q[..., 3:]
-    norm = np.linalg.norm(xyz, axis=-1, keepdims=True)
-    return np.where(norm > 1e-12, xyz * (2.0 * np.arctan2(norm, w) / np.maximum(norm, 1e-12)), 2.0 * xyz)
 
 
 def _angle_between(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:

@@ -71,7 +71,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     estimator = Estimator.from_model(args.model, device=args.device, backend=args.backend, tracking=args.tracking,
                                      fit=args.fit, parts=args.parts, localize_size=args.localize_size,
-                                     close_ups=args.close_ups)
+                                     close_ups=args.close_ups, static_camera=args.static_camera or False)
     reader = DreamReader(args.data, estimator.robot, units=args.units)
     if args.ablation:
         reports = evaluate_methods(estimator, reader, limit=args.limit, progress=not args.quiet,
@@ -286,6 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--localize-size", type=int, default=None, metavar="PX",
                    help="input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                         "keypoints); 0: the full network pass (default: the model card's choice, else the crop's size)")
+    e.add_argument("--static-camera", nargs="?", const=True, default=None, metavar="YAML",
+                   help="the camera and the robot's base do not move (a video): earlier frames' base poses become a "
+                        "prior on each frame's fit (config/static_camera.yaml, or a YAML of its keys to override)")
     e.add_argument("--ablation", action="store_true", help="on the same frames and detections: feed-forward, "
                                                          "lifter, fitted, and fitted with the true joints")
     e.add_argument("--depth-diagnostics", action=argparse.BooleanOptionalAction, default=None,

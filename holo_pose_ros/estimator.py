@@ -105,6 +105,8 @@ class Estimator:
     or its card's `estimator.close_ups` says so; a network trained with `close_up` views) each of the robot YAML's
     `close_ups` (an arm, a hand) with enough confident keypoints in the crop pass gets a pass of its own, on a box
     around them at the part's own scale, whose detections of that part's fit keypoints replace the crop pass's.
+    With `static_camera` (off unless asked: only the user knows that neither camera nor base moves) the robust
+    average of earlier frames' fitted base poses is a prior on each frame's fit (static_camera.py).
     The whole-image pass is the network's 2D-only `localize` (presence and DREAM's keypoints from their fit heatmaps;
     no depth, joints or 3D volume: the same box and presence as the full pass, for less) at `localize_size` px (a
     multiple of 32; None: the crop's size; `localizer`: what runs it, e.g. its ONNX export); 0, or a network without
@@ -116,7 +118,8 @@ class Estimator:
                  min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
                  depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
                  parts: bool = False, parts_tracked: bool = True, localize_size: int | None = None,
-                 localizer: Callable | None = None, close_ups: bool = False):
+                 localizer: Callable | None = None, close_ups: bool = False,
+                 static_camera: bool | dict | str | Path = False):
         from holo_pose_ros.fitting import Fitter
 
         self.device = torch.device(device)
@@ -152,6 +155,8 @@ class Estimator:
             meshes = load_link_meshes(fit_robot)
         self.fitter = Fitter(fit_robot, fit_config, meshes=meshes)
         self._previous: Estimate | None = None  # the last found estimate (its keypoints crop the next frame)
+        self.static_camera = None
+        self.set_static_camera(static_camera)
 
     @classmethod
     def from_model(cls, model: str | Path, device: str = "cpu", backend: str = "torch", threads: int | None = None,
@@ -189,9 +194,19 @@ class Estimator:
                 kwargs["localizer"] = OnnxNetwork(cached_export(net, model, size), device, threads)
         return cls(net, robot, device, network=network, backend=backend, **kwargs)
 
+    def set_static_camera(self, static_camera: bool | dict | str | Path | None) -> None:
+        """Turn the static camera on (True, or a configuration: config/static_camera.yaml's keys as a dict or YAML
+        path) or off (False, None); either way its running base pose starts afresh."""
+        from holo_pose_ros.static_camera import StaticCamera
+
+        self.static_camera = None if static_camera is None or static_camera is False else StaticCamera(
+            None if static_camera is True else static_camera)
+
     def reset(self) -> None:
-        """Forget the tracked state (e.g. when the stream jumps)."""
+        """Forget the tracked state and a static camera's base pose (e.g. when the stream jumps)."""
         self._previous = None
+        if self.static_camera is not None:
+            self.static_camera.reset()
 
     @torch.inference_mode()
     def _pass(self, run: Callable, image: np.ndarray, box: np.ndarray, size: int, timings: dict[str, float],
@@ -405,6 +420,9 @@ class Estimator:
                                                     silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
+            if self.static_camera is not None and known_joints is None:
+                poses["fitted"] = self._static_camera_fit(detection, K, weights, fitted, ff, tracked, timings, names,
+                                                          depth_prior_m if use_prior else None, silhouette)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
         results = {}
         for method in methods:
@@ -417,6 +435,27 @@ class Estimator:
         last = results[methods[-1]]
         self._previous = last if last.found else None
         return results
+
+    def _static_camera_fit(self, detection: Detection, K: np.ndarray, weights: np.ndarray, fitted, ff: dict,
+                           tracked: bool, timings: dict, names: dict, depth_prior_m: float | None, silhouette) -> tuple:
+        """With a static camera: where the frame's own fit agrees with the running average of earlier frames' fits,
+        it is fitted again (plainly, from its own pose and from the camera's) with that average as a prior on the
+        base pose; a frame that disagrees (a wrong basin, or the camera moved) keeps its own fit. The frame's own
+        fit joins the average if it is found. Returns (q, T_cam_base, fit); the 'static_camera' timing."""
+        t0 = time.perf_counter()
+        camera = self.static_camera
+        prior = camera.prior() if camera.agrees(fitted.T_cam_base) else None
+        if self._estimate_from_pose(detection, K, fitted.q, fitted.T_cam_base, fitted, ff, tracked, timings,
+                                    names).found:
+            camera.observe(fitted.T_cam_base)
+        result = (fitted.q, fitted.T_cam_base, fitted)
+        if prior is not None:
+            refit = self.fitter.fit(detection.uv, weights, K, np.stack([fitted.q, fitted.q]),
+                                    np.stack([fitted.T_cam_base, prior.T_cam_base]), None, depth_prior_m,
+                                    silhouette=silhouette, base_prior=prior)
+            result = (refit.q, refit.T_cam_base, refit)
+        timings["static_camera"] = (time.perf_counter() - t0) * 1e3
+        return result
 
     def search(self, from_previous: bool = False):
         """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced); the

@@ -14,10 +14,11 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from holo_pose_ros.calibration import RunningCalibration, average_poses, pose_error, rotation_log
+from holo_pose_ros.calibration import RunningCalibration, average_poses, pose_error
 from holo_pose_ros.cli import main as cli_main
 from holo_pose_ros.data.generator import generate, load_generator_config
 from holo_pose_ros.fitting.residuals import so3_exp
+from holo_pose_ros.geometry.alignment import rotation_log
 from msg_adapters import rgb_to_image
 from test_estimator_node import FRAME_ID, camera_info_msg, card, frame, graphs  # noqa: F401  (fixtures)
 

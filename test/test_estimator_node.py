@@ -173,6 +173,11 @@ def test_outputs_carry_the_image_header_and_match_the_core(graphs, card, frame):
     assert g.node.set_parameters([Parameter("close_ups", value="auto")])[0].successful
     assert g.node.estimator.close_ups == bool((read_card(g.node.model)[1].get("estimator") or {}).get("close_ups", False))
     assert not g.node.set_parameters([Parameter("close_ups", value="often")])[0].successful
+    assert g.node.set_parameters([Parameter("static_camera", value=True)])[0].successful
+    assert g.node.estimator.static_camera is not None and g.node.estimator.static_camera.prior() is None
+    assert g.spin_until(lambda: "static_camera_restarts" in g.diagnostics())
+    assert g.node.set_parameters([Parameter("static_camera", value=False)])[0].successful
+    assert g.node.estimator.static_camera is None
     assert g.node.set_parameters([Parameter("min_confidence", value=1.0)])[0].successful
     lost = header(1002)
     assert g.spin_until(lambda: g.node.stats.not_found >= 1, image=rgb_to_image(image, lost),

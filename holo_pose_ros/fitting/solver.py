@@ -49,6 +49,7 @@ from holo_pose_ros.fitting.silhouette import (
     signed_distance_residuals,
 )
 from holo_pose_ros.fitting.surface import TriangleMesh, sample_surface_points
+from holo_pose_ros.geometry.alignment import rotation_log
 from holo_pose_ros.resources import config_with_overrides
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -70,6 +71,21 @@ class FitResult:
                                            # silhouette)
     q_starts: np.ndarray | None = None          # (S, J) every start's final joints (the starts, when not run)
     T_starts: np.ndarray | None = None          # (S, 4, 4) every start's final T_cam<-base
+
+
+@dataclass(frozen=True)
+class BasePrior:
+    """A Gaussian pull of the base pose towards T_cam_base, e.g. a static camera's running estimate: what earlier
+    frames say about a pose that does not change. Sigmas per axis: metres of translation, radians of rotation."""
+
+    T_cam_base: np.ndarray    # (4, 4) T_cam<-base
+    sigma_m: float
+    sigma_rad: float
+
+    def __post_init__(self):
+        T = np.asarray(self.T_cam_base, float)
+        if T.shape != (4, 4) or not np.isfinite(T).all() or not (self.sigma_m > 0 and self.sigma_rad > 0):
+            raise ValueError("BasePrior needs a finite 4 x 4 T_cam_base and positive sigmas")
 
 
 def load_fitting_config(config: dict | str | Path | None = None) -> dict:
@@ -295,11 +311,12 @@ class Fitter:
     # -- fit ------------------------------------------------------------------------------------------------
     def fit(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q0: np.ndarray, T0: np.ndarray,
             known_joints: np.ndarray | None = None, depth_prior_m: float | None = None,
-            silhouette: Silhouette | None = None) -> FitResult:
+            silhouette: Silhouette | None = None, base_prior: BasePrior | None = None) -> FitResult:
         """Fit to fit keypoints uv (M, 2) px with weights (M,) >= 0 seen through K (3, 3), from starts q0 (S, J)
         and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
         depth_prior_m, the depth of `depth_points` (config depth_prior_on: the root keypoint or all fit points) is
-        pulled towards it (metres; e.g. a depth network's). With a silhouette (Fitter.silhouette(mask); needs meshes
+        pulled towards it (metres; e.g. a depth network's). With base_prior the base pose is pulled towards its
+        T_cam_base (config base_prior_weight at one sigma; the converse of known_joints). With a silhouette (Fitter.silhouette(mask); needs meshes
         at construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
         and the fit runs even without usable keypoints."""
         cfg = self.config
@@ -368,10 +385,33 @@ class Fitter:
         diag = np.arange(nq)
 
         depth_precision = 0.0 if depth_prior_m is None else W * cfg["depth_prior_weight"] / cfg["depth_prior_sigma_m"] ** 2
+        if base_prior is not None:
+            R_prior = np.asarray(base_prior.T_cam_base, float)[:3, :3]
+            t_prior = np.asarray(base_prior.T_cam_base, float)[:3, 3]
+            base_unit = W * cfg["base_prior_weight"]                           # px^2 at one sigma
+            precision_t, precision_r = base_unit / base_prior.sigma_m ** 2, base_unit / base_prior.sigma_rad ** 2
+            base_scale2 = float(cfg["base_prior_robust_sigmas"]) ** 2
+
+        def base_residuals(state: _State) -> tuple[np.ndarray, np.ndarray]:
+            """(S, 3) rotation vector of R_prior^T R (rad) and (S, 3) t - t_prior (m)."""
+            return rotation_log(np.swapaxes(R_prior, -1, -2) @ state.R), state.t - t_prior
+
+        def base_sigmas2(state: _State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """(S,) the squared distance to the base prior in sigmas, and its residuals (rad, m)."""
+            e_r, e_t = base_residuals(state)
+            return (np.sum(e_r ** 2, -1) * precision_r + np.sum(e_t ** 2, -1) * precision_t) / base_unit, e_r, e_t
+
+        def base_cost(state: _State) -> np.ndarray | float:
+            """(S,) the base prior's robust (Cauchy) cost, 0 without one, px^2: quadratic near the prior, growing only
+            logarithmically beyond base_prior_robust_sigmas (a moved camera is not pulled back)."""
+            if base_prior is None:
+                return 0.0
+            return base_unit * base_scale2 * np.log1p(base_sigmas2(state)[0] / base_scale2)
 
         def prior_cost(state: _State) -> np.ndarray:
             joints = 0.0 if pose_only else ((state.q - q_start) ** 2) @ prior
-            return joints + (0.0 if depth_prior_m is None else depth_precision * (state.z - depth_prior_m) ** 2)
+            return joints + (0.0 if depth_prior_m is None else depth_precision * (state.z - depth_prior_m) ** 2) \
+                + base_cost(state)
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
         state = linearize(q, R, t)
@@ -392,6 +432,14 @@ class Fitter:
             if depth_prior_m is not None:
                 H += depth_precision * state.jz[:, :, None] * state.jz[:, None, :]
                 g += depth_precision * state.jz * (state.z - depth_prior_m)[:, None]
+            if base_prior is not None:  # IRLS of the Cauchy; the rotation's Jacobian taken as the identity
+                d2, e_r, e_t = base_sigmas2(state)
+                down = (1.0 / (1.0 + d2 / base_scale2))[:, None]
+                rot, trans = np.arange(nq, nq + 3), np.arange(nq + 3, nq + 6)
+                H[:, rot, rot] += precision_r * down
+                H[:, trans, trans] += precision_t * down
+                g[:, nq:nq + 3] += precision_r * down * e_r
+                g[:, nq + 3:nq + 6] += precision_t * down * e_t
             fixed = None
             if not pose_only:
                 H[:, diag, diag] += prior
@@ -420,9 +468,11 @@ class Fitter:
 
         # the coarse-to-fine stages descend on subsets of the points: a start may end above where it began on all of
         # them (seen on real detections); never return worse than the start itself
-        state = state.where(data_cost(state) > data_cost(start_state), start_state)
+        # (with a base prior, its cost counts too: the prior's pull is what it is there for)
+        state = state.where(data_cost(state) + base_cost(state) > data_cost(start_state) + base_cost(start_state),
+                            start_state)
         costs = data_cost(state) / W_all
-        best = int(np.argmin(costs))
+        best = int(np.argmin(costs + base_cost(state) / W_all))
         silhouette_cost = None if silhouette is None else float((data_cost(state) - state.rho @ w)[best] / W_sil)
         T_starts = self._matrices(state.R, state.t)
         return FitResult(state.q[best].copy(), T_starts[best], float(costs[best]),

@@ -82,3 +82,12 @@ def matrix_to_quaternion_xyzw(R) -> np.ndarray:
     _, vectors = np.linalg.eigh(K)
     q = vectors[..., :, -1]
     return q * np.where(q[..., 3:] < 0, -1.0, 1.0)
+
+
+def rotation_log(R) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), radians, through the unit quaternion (w >= 0):
+    2 atan2(|xyz|, w) along xyz, well defined up to an angle of pi."""
+    q = matrix_to_quaternion_xyzw(R)
+    xyz, w = q[..., :3], q[..., 3:]
+    norm = np.linalg.norm(xyz, axis=-1, keepdims=True)
+    return np.where(norm > 1e-12, xyz * (2.0 * np.arctan2(norm, w) / np.maximum(norm, 1e-12)), 2.0 * xyz)

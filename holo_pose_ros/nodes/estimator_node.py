@@ -73,6 +73,9 @@ PARAMETERS: ParameterSpecs = {
     "close_ups": ("auto | true | false: a second network pass on a close-up of each of the robot YAML's close_ups "
                   "(an arm, a hand), whose detections of that part replace the crop's (one pass per part more; auto: "
                   "the model card's validated choice).", False, {}),
+    "static_camera": ("The camera and the robot's base do not move: the robust average of earlier frames' base poses "
+                      "becomes a prior on each frame's fit (config/static_camera.yaml; it restarts when the camera "
+                      "is moved). Turning it on or off forgets that pose.", False, {}),
     "localize_size": ("Input size (px, a multiple of 32) of the whole-image pass, run 2D-only (presence and DREAM's "
                       "keypoints); 0: the full network pass; -1: the model card's choice, else the crop's size.", True,
                       dict(integer_range=[IntegerRange(from_value=-1, to_value=1024)])),
@@ -252,6 +255,7 @@ class EstimatorNode(Node):
                                               tracking=p["tracking"], min_confidence=p["min_confidence"],
                                               fit=_fit_mode(p["fit"]), parts=_fit_mode(p["parts"], "parts"),
                                               close_ups=_fit_mode(p["close_ups"], "close_ups"),
+                                              static_camera=p["static_camera"],
                                               localize_size=None if p["localize_size"] < 0 else p["localize_size"])
         robot = self.estimator.robot
         if robot.name != p["robot"]:
@@ -354,6 +358,8 @@ class EstimatorNode(Node):
             elif param.name == "close_ups":
                 mode = _fit_mode(param.value, "close_ups")
                 self.estimator.close_ups = self._validated_close_ups if mode is None else mode
+            elif param.name == "static_camera":
+                self.estimator.set_static_camera(param.value)
             elif param.name in ("publish_annotated", "publish_tf"):
                 setattr(self, param.name, param.value)
 
@@ -556,6 +562,8 @@ class EstimatorNode(Node):
                 **({"calibration_frames": s.calibration_frames, "skipped_no_joint_state": s.no_joint_state,
                     "skipped_joint_state_incomplete": s.joint_state_incomplete, "errors_joint_state":
                     s.errors["joint_state"]} if self._joint_states is not None else {}),
+                **({"static_camera_frames": len(camera.poses), "static_camera_restarts": camera.restarts}
+                   if (camera := self.estimator.static_camera) is not None else {}),
                 "device": self.device, "model": self.model, "pipeline": self._detections is not None,
                 "image_topic": self._image_sub.topic_name,
             }
