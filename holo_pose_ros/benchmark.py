@@ -59,20 +59,23 @@ def _messages(estimate, header: Header, parents: list[int]) -> None:
 
 def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: str = "cpu", tracking: bool = False,
               threads: int | None = None, warmup: int = 5, backend: str = "torch", fit: bool | None = None,
-              parts: bool | None = None, localize_size: int | None = None, close_ups: bool | None = None) -> dict:
+              parts: bool | None = None, localize_size: int | None = None, close_ups: bool | None = None,
+              static_camera: bool = False) -> dict:
     """Time `frames` estimates (cycling over the folder's frames after `warmup` untimed ones); returns the figures.
     Tracking needs a stream: a generated video plays in order; independent frames are each held for TRACKING_HOLD
-    frames (stream_frames)."""
+    frames (stream_frames). With `static_camera` (play a generated video: one camera per clip) its refit is the
+    'static_camera' stage."""
     if threads:
         torch.set_num_threads(threads)
     estimator = Estimator.from_model(model, device=device, backend=backend, threads=threads, tracking=tracking,
                                      min_confidence=0.0, fit=fit, parts=parts, localize_size=localize_size,
-                                     close_ups=close_ups)
+                                     close_ups=close_ups, static_camera=static_camera)
     reader = DreamReader(data, estimator.robot)
     chosen, hold = stream_frames(reader, warmup + frames, tracking, cap=50)
     pool = [(rgb_to_image(reader.load_image(f), Header(frame_id="camera")), f.K) for f in chosen]
     parents = estimator.robot.keypoint_parents
-    samples = {stage: [] for stage in STAGES}
+    stages = (*STAGES[:-2], "static_camera", *STAGES[-2:]) if static_camera else STAGES
+    samples = {stage: [] for stage in stages}
     for i in range(warmup + frames):
         msg, K = pool[(i // hold) % len(pool)]
         t0 = time.perf_counter()
@@ -88,7 +91,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         timings = estimate.timings_ms
         samples["image_conversion"].append((t1 - t0) * 1e3)
         samples["localize"].append(timings.get("localize", 0.0))
-        for stage in ("crop", "network", "kinematics", "lifter", "fit"):
+        for stage in ("crop", "network", "kinematics", "lifter", "fit", *(("static_camera",) if static_camera else ())):
             samples[stage].append(timings.get(stage, 0.0))
         samples["messages"].append((t3 - t2) * 1e3)
         samples["total"].append((t3 - t0) * 1e3)
@@ -104,6 +107,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "device": device_name(estimator.device, threads or torch.get_num_threads()),
         "backend": backend, "fit": estimator.fit, "parts": estimator.parts, "close_ups": estimator.close_ups,
+        "static_camera": static_camera,
         "localize_size": estimator.localize_size,
     }
 
@@ -132,6 +136,7 @@ def format_benchmark(result: dict) -> str:
              f"{'tracking: 1 pass' if result['tracking'] else 'localize + crop: 2 passes'}) on {result['device']}, "
              f"backend {result['backend']}, {'fitted' if result['fit'] else 'feed-forward'}"
              f"{' by parts' if result['fit'] and result.get('parts') else ''}"
+             f"{', static camera' if result.get('static_camera') else ''}"
              f"{', localizer at ' + str(result['localize_size']) + ' px' if result.get('localize_size') else ''}",
              f"{'stage':<18}{'mean':>8}{'p50':>8}{'p95':>8}{'max':>8}  ms"]
     for stage, s in result["stages_ms"].items():

@@ -185,7 +185,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
 
     result = benchmark(args.model, args.data, frames=args.frames, device=args.device, tracking=args.tracking,
                        threads=args.threads, backend=args.backend, fit=args.fit, parts=args.parts,
-                       localize_size=args.localize_size, close_ups=args.close_ups)
+                       localize_size=args.localize_size, close_ups=args.close_ups, static_camera=args.static_camera)
     print(format_benchmark(result))
     if args.node:  # the only sub-command that starts a ROS 2 graph: rclpy is imported here, not in the core
         from holo_pose_ros.nodes.node_benchmark import format_node_latency, node_latency
@@ -387,6 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--parts", action=argparse.BooleanOptionalAction, default=None,
                    help="search the fit by parts, each chain swept two joints at a time (fitting/parts.py; "
                         "default: the model card's validated choice)")
+    m.add_argument("--static-camera", action="store_true",
+                   help="the static camera's prior on the base pose (play a generated video: one camera per clip)")
     m.add_argument("--close-ups", action=argparse.BooleanOptionalAction, default=None,
                    help="a second pass on a close-up of each of the robot YAML's close_ups (an arm, a hand), whose "
                         "detections of that part replace the crop's (default: the model card's validated choice)")

@@ -24,6 +24,10 @@ def test_benchmark_reports_stages_and_figures(tmp_path, small_model_card, capsys
     assert abs(result["fps"] - 1e3 / stages["total"]["mean"]) < 1e-6
     printed = capsys.readouterr().out
     assert "frames/s" in printed and "fitted by parts" in printed
+    assert main(["benchmark", "--model", str(small_model_card), "--data", str(tmp_path / "frames"), "--frames", "2",
+                 "--fit", "--static-camera", "--json", str(out)]) == 0  # its stage is timed
+    static = json.loads(out.read_text())
+    assert static["static_camera"] is True and static["stages_ms"]["static_camera"]["p50"] > 0
 
 
 @pytest.mark.parametrize("flags", [[], ["--no-pipeline"]])
