@@ -75,8 +75,9 @@ class FitResult:
 
 @dataclass(frozen=True)
 class BasePrior:
-    """A Gaussian pull of the base pose towards T_cam_base, e.g. a static camera's running estimate: what earlier
-    frames say about a pose that does not change. Sigmas per axis: metres of translation, radians of rotation."""
+    """A pull of the base pose towards T_cam_base, e.g. a static camera's running estimate: what earlier frames say
+    about a pose that does not change. Gaussian near it (sigmas per axis: metres of translation, radians of
+    rotation), Cauchy beyond config base_prior_robust_sigmas, so that a pose far from it is hardly pulled."""
 
     T_cam_base: np.ndarray    # (4, 4) T_cam<-base
     sigma_m: float
@@ -316,8 +317,9 @@ class Fitter:
         and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
         depth_prior_m, the depth of `depth_points` (config depth_prior_on: the root keypoint or all fit points) is
         pulled towards it (metres; e.g. a depth network's). With base_prior the base pose is pulled towards its
-        T_cam_base (config base_prior_weight at one sigma; the converse of known_joints). With a silhouette (Fitter.silhouette(mask); needs meshes
-        at construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
+        T_cam_base (config base_prior_weight at one sigma, robust beyond base_prior_robust_sigmas; its cost also
+        counts in the choice of the winning start). With a silhouette (Fitter.silhouette(mask); needs meshes at
+        construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
         and the fit runs even without usable keypoints."""
         cfg = self.config
         uv, w = self.observations(uv, weights)
