@@ -23,7 +23,7 @@ from small_model import save_small_model
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory):
     folder = tmp_path_factory.mktemp("onnx_frames")
-    generate("panda", 4, folder, seed=4242, workers=1, width=320, height=240, progress=False)
+    generate("panda", 8, folder, seed=4242, workers=1, width=320, height=240, progress=False)
     return folder
 
 

@@ -1,7 +1,8 @@
 """The static camera (static_camera.py): its running robust average, the prior it gives once min_frames poses
 are in, single disagreeing frames kept out, a moved camera restarting it, bad configurations refused; and on real
 renders, a generated video of two clips (two cameras) estimated with the shipped Panda: the average lands near each
-clip's true base pose, the move between clips is noticed, and `holo-pose evaluate --static-camera` runs."""
+clip's true base pose (nearer than to the other clip's), the move between clips is noticed, and `holo-pose evaluate
+--static-camera` runs."""
 
 from __future__ import annotations
 
@@ -79,6 +80,14 @@ def two_clips(tmp_path_factory):
     return folder / "video"
 
 
+def near(average: np.ndarray, truth: np.ndarray, other: np.ndarray) -> bool:
+    """Whether an averaged base pose lies within 10 cm and 20 deg of `truth` (a few frames of an untrained-for
+    camera: the base's yaw trades off against joint 1) and nearer to it than to `other`, in both."""
+    dt, dr = pose_error(average, truth)
+    ot, orot = pose_error(average, other)
+    return dt < 0.1 and dr < 20.0 and dt < ot and dr < orot
+
+
 def test_a_video_of_two_cameras_is_averaged_per_camera(two_clips, tmp_path):
     reader = DreamReader(two_clips, "panda")
     frames = list(reader)
@@ -89,13 +98,11 @@ def test_a_video_of_two_cameras_is_averaged_per_camera(two_clips, tmp_path):
     for i, (frame, image) in enumerate(reader.images(frames)):
         estimate = estimator.estimate(image, frame.K)
         assert estimate.found, frame.name
-        if i == 7:  # the end of the first clip
-            dt, dr = pose_error(estimator.static_camera.prior().T_cam_base, first)
-            assert dt < 0.1 and dr < 10.0, (dt, dr)
+        if i == 7:  # the end of the first clip: near its camera's pose, nearer than to the next clip's
+            assert near(estimator.static_camera.prior().T_cam_base, first, second)
             assert estimator.static_camera.restarts == 0
     assert estimator.static_camera.restarts == 1  # the camera moved once
-    dt, dr = pose_error(estimator.static_camera.prior().T_cam_base, second)
-    assert dt < 0.1 and dr < 10.0, (dt, dr)
+    assert near(estimator.static_camera.prior().T_cam_base, second, first)
     estimator.reset()
     assert estimator.static_camera.prior() is None
 
