@@ -90,8 +90,7 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
             continue
         timings = estimate.timings_ms
         samples["image_conversion"].append((t1 - t0) * 1e3)
-        samples["localize"].append(timings.get("localize", 0.0))
-        for stage in ("crop", "network", "kinematics", "lifter", "fit", *(("static_camera",) if static_camera else ())):
+        for stage in stages[1:-2]:  # the estimator's own stages: localize ... fit (and the static camera's)
             samples[stage].append(timings.get(stage, 0.0))
         samples["messages"].append((t3 - t2) * 1e3)
         samples["total"].append((t3 - t0) * 1e3)

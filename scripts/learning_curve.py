@@ -51,12 +51,15 @@ def _number(value: str | None):
         return value or None
 
 
+def shipped_card(robot: str) -> dict:
+    """The card of `robot`'s shipped model ({} when none ships)."""
+    card = ROOT / "holo_pose_ros" / "weights" / f"{robot}.yaml"
+    return (yaml.safe_load(card.read_text()) or {}) if card.exists() else {}
+
+
 def shipped_point(robot: str) -> dict | None:
     """(views, validation 2D error, AUC) of the shipped model of `robot`, from its card."""
-    card = ROOT / "holo_pose_ros" / "weights" / f"{robot}.yaml"
-    if not card.exists():
-        return None
-    data = yaml.safe_load(card.read_text())
+    data = shipped_card(robot)
     training, validation = data.get("training") or {}, data.get("validation") or {}
     if "kp2d_fit_median_px" not in validation:
         return None
@@ -67,10 +70,7 @@ def shipped_point(robot: str) -> dict | None:
 
 def shipped_run(robot: str) -> str | None:
     """The training run of `robot`'s shipped model (its card's `training.config.out` folder name), or None."""
-    card = ROOT / "holo_pose_ros" / "weights" / f"{robot}.yaml"
-    if not card.exists():
-        return None
-    out = (((yaml.safe_load(card.read_text()) or {}).get("training") or {}).get("config") or {}).get("out")
+    out = ((shipped_card(robot).get("training") or {}).get("config") or {}).get("out")
     return Path(out).name if out else None
 
 

@@ -394,13 +394,10 @@ class Fitter:
             precision_t, precision_r = base_unit / base_prior.sigma_m ** 2, base_unit / base_prior.sigma_rad ** 2
             base_scale2 = float(cfg["base_prior_robust_sigmas"]) ** 2
 
-        def base_residuals(state: _State) -> tuple[np.ndarray, np.ndarray]:
-            """(S, 3) rotation vector of R_prior^T R (rad) and (S, 3) t - t_prior (m)."""
-            return rotation_log(np.swapaxes(R_prior, -1, -2) @ state.R), state.t - t_prior
-
         def base_sigmas2(state: _State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            """(S,) the squared distance to the base prior in sigmas, and its residuals (rad, m)."""
-            e_r, e_t = base_residuals(state)
+            """(S,) the squared distance to the base prior in sigmas, and its residuals: (S, 3) the rotation vector
+            of R_prior^T R (rad) and (S, 3) t - t_prior (m)."""
+            e_r, e_t = rotation_log(np.swapaxes(R_prior, -1, -2) @ state.R), state.t - t_prior
             return (np.sum(e_r ** 2, -1) * precision_r + np.sum(e_t ** 2, -1) * precision_t) / base_unit, e_r, e_t
 
         def base_cost(state: _State) -> np.ndarray | float:
@@ -471,10 +468,12 @@ class Fitter:
         # the coarse-to-fine stages descend on subsets of the points: a start may end above where it began on all of
         # them (seen on real detections); never return worse than the start itself
         # (with a base prior, its cost counts too: the prior's pull is what it is there for)
-        state = state.where(data_cost(state) + base_cost(state) > data_cost(start_state) + base_cost(start_state),
-                            start_state)
-        costs = data_cost(state) / W_all
-        best = int(np.argmin(costs + base_cost(state) / W_all))
+        end, begin = data_cost(state), data_cost(start_state)
+        end_base, begin_base = base_cost(state), base_cost(start_state)
+        back = end + end_base > begin + begin_base
+        state = state.where(back, start_state)
+        costs = np.where(back, begin, end) / W_all
+        best = int(np.argmin(costs + np.where(back, begin_base, end_base) / W_all))
         silhouette_cost = None if silhouette is None else float((data_cost(state) - state.rho @ w)[best] / W_sil)
         T_starts = self._matrices(state.R, state.t)
         return FitResult(state.q[best].copy(), T_starts[best], float(costs[best]),
