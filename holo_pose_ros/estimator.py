@@ -368,14 +368,16 @@ class Estimator:
     def estimate_detection(self, detection: Detection | None, K: np.ndarray, known_joints: np.ndarray | None = None,
                            methods: tuple[str, ...] = METHODS, tracked: bool = False,
                            timings: dict[str, float] | None = None, start: float | None = None,
-                           depth_prior_m: float | None = None, depth_prior: bool | None = None) -> dict[str, Estimate]:
+                           depth_prior_m: float | None = None, depth_prior: bool | None = None,
+                           static_camera_step: bool = True) -> dict[str, Estimate]:
         """The estimates of one given detection (None: nothing detected), one per method; e.g. to compare fit
         settings on cached detections without re-running the network. `tracked` says the crop came from the
         previous frame (its pose is then one more start of the fit); `timings` and `start` (perf_counter seconds)
         carry the detection's timings into the estimates. `depth_prior_m` replaces the heads' depth in the fit's
         depth prior (metres; e.g. the true depth, in an error-budget study); `depth_prior` (None: the estimator's)
-        switches that prior on or off for this call (e.g. the evaluation's fit without it). The tracked state
-        follows the last method asked for."""
+        switches that prior on or off for this call (e.g. the evaluation's fit without it). Without
+        `static_camera_step` (a second look at a detection already estimated, e.g. a diagnostic) a static camera is
+        neither used nor fed. The tracked state follows the last method asked for."""
         _check_methods(methods)
         K = np.asarray(K, dtype=np.float64)
         timings = {} if timings is None else timings
@@ -420,7 +422,7 @@ class Estimator:
                                                     silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
-            if self.static_camera is not None and known_joints is None:
+            if self.static_camera is not None and known_joints is None and static_camera_step:
                 poses["fitted"] = self._static_camera_fit(detection, K, weights, fitted, ff, tracked, timings, names,
                                                           depth_prior_m if use_prior else None, silhouette)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3

@@ -36,7 +36,8 @@ def depth_sources(estimator: Estimator, detection, K: np.ndarray, known_joints: 
                   estimates: dict[str, Estimate]) -> dict[str, Estimate]:
     """One detection's estimates per DEPTH_SOURCES (evaluation/depth.py): DepthNet's (the feed-forward one of
     `estimates`), the fit without the depth prior (2D evidence only; fitted here) and the shipped one."""
-    no_prior = estimator.estimate_detection(detection, K, known_joints, ("fitted",), depth_prior=False)["fitted"]
+    no_prior = estimator.estimate_detection(detection, K, known_joints, ("fitted",), depth_prior=False,
+                                            static_camera_step=False)["fitted"]  # a second look: not the stream's
     return {"depthnet": estimates["feed-forward"], "fit_no_prior": no_prior,
             "shipped": estimates[estimator.method(calibrating=False)]}
 
