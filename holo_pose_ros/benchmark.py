@@ -21,7 +21,8 @@ from msg_adapters import (image_to_rgb, rgb_to_image, to_joint_state, to_keypoin
                           to_pose_stamped, to_transform_stamped)
 
 TRACKING_HOLD = 10  # frames per scene when tracking independent frames (a video plays in order instead)
-STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "messages", "total")
+STAGES = ("image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "in_view", "messages",
+          "total")
 
 
 def network_gflops(net: HolisticNet) -> float:

@@ -393,6 +393,7 @@ class Estimator:
         t0 = time.perf_counter()
         ff = self._kinematics(detection.out, known_joints, timings)
         poses = {"feed-forward": (ff["joints"], ff["T_cam_base"], None)}
+        evidence = {}  # method -> the detection as its estimate used it, where that differs from `detection`
         if not self.off_image_evidence and detection.image_size is not None:  # guesses in the crop's padding
             seen = in_image(detection.uv, *detection.image_size)
             detection = dataclasses.replace(detection, confidence=np.where(seen, detection.confidence, 0.0))
@@ -417,29 +418,58 @@ class Estimator:
             silhouette = None
             if self.silhouette and detection.mask is not None and detection.mask.any():
                 silhouette = self.fitter.silhouette(detection.mask)
-            fitted = self.search(from_previous).fit(detection.uv, weights, K, np.concatenate(q0), np.concatenate(T0),
-                                                    known_joints, depth_prior_m if use_prior else None,
-                                                    silhouette=silhouette)
+            q0, T0 = np.concatenate(q0), np.concatenate(T0)
+            fitted = self.search(from_previous).fit(detection.uv, weights, K, q0, T0, known_joints,
+                                                    depth_prior_m if use_prior else None, silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
+            if detection.image_size is not None and self.fitter.config["in_view_margin_px"] >= 0:
+                fitted, evidence["fitted"] = self._in_view_refit(detection, K, fitted, q0, T0, known_joints,
+                                                                 depth_prior_m if use_prior else None, silhouette,
+                                                                 timings)
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
             if self.static_camera is not None and known_joints is None and static_camera_step:
-                poses["fitted"] = self._static_camera_fit(detection, K, weights, fitted, ff, tracked, timings, names,
-                                                          depth_prior_m if use_prior else None, silhouette)
+                poses["fitted"] = self._static_camera_fit(evidence.get("fitted", detection), K, fitted, ff, tracked,
+                                                          timings, names, depth_prior_m if use_prior else None,
+                                                          silhouette)
         timings["estimate"] = (time.perf_counter() - t0) * 1e3
         results = {}
         for method in methods:
             if method not in poses:  # no lifter shipped with this model
                 results[method] = Estimate(False, 0.0, timings_ms=dict(timings), box=detection.box, **names)
                 continue
-            results[method] = self._estimate_from_pose(detection, K, *poses[method], ff, tracked, timings, names)
+            results[method] = self._estimate_from_pose(evidence.get(method, detection), K, *poses[method], ff, tracked,
+                                                       timings, names)
         for r in results.values():
             r.timings_ms["total"] = (time.perf_counter() - start) * 1e3
         last = results[methods[-1]]
         self._previous = last if last.found else None
         return results
 
-    def _static_camera_fit(self, detection: Detection, K: np.ndarray, weights: np.ndarray, fitted, ff: dict,
-                           tracked: bool, timings: dict, names: dict, depth_prior_m: float | None, silhouette) -> tuple:
+    def _in_view_refit(self, detection: Detection, K: np.ndarray, fitted, q0: np.ndarray, T0: np.ndarray,
+                       known_joints, depth_prior_m: float | None, silhouette, timings: dict) -> tuple:
+        """Fit keypoints that the fit puts outside the image, or within the fit config's `in_view_margin_px` of its
+        border, are guesses, not evidence: the network never learnt where a point it cannot see goes (trained only
+        on points in view, on truncated frames it puts them ~200 px off, many inside the image). They lose their
+        confidence and the frame is fitted again, plainly, from its fit and from its starts q0 (S, J), T0 (S, 4, 4).
+        Returns (fit, the detection as that fit used it); the 'in_view' timing."""
+        if not np.isfinite(fitted.cost):
+            return fitted, detection
+        t0 = time.perf_counter()
+        W, H = detection.image_size
+        margin = float(self.fitter.config["in_view_margin_px"])
+        uv = self.fitter.project(fitted.q, fitted.T_cam_base, K)
+        out = (uv[:, 0] < margin) | (uv[:, 0] > W - margin) | (uv[:, 1] < margin) | (uv[:, 1] > H - margin)
+        if not (out & (self.fit_weights(detection.confidence) > 0)).any():
+            return fitted, detection
+        in_view = dataclasses.replace(detection, confidence=np.where(out, 0.0, detection.confidence))
+        refit = self.fitter.fit(in_view.uv, self.fit_weights(in_view.confidence), K,
+                                np.concatenate([fitted.q[None], q0]), np.concatenate([fitted.T_cam_base[None], T0]),
+                                known_joints, depth_prior_m, silhouette=silhouette)
+        timings["in_view"] = (time.perf_counter() - t0) * 1e3
+        return (refit, in_view) if np.isfinite(refit.cost) else (fitted, detection)
+
+    def _static_camera_fit(self, detection: Detection, K: np.ndarray, fitted, ff: dict, tracked: bool, timings: dict,
+                           names: dict, depth_prior_m: float | None, silhouette) -> tuple:
         """With a static camera: where the frame's own fit agrees with the running average of earlier frames' fits,
         it is fitted again (plainly, from its own pose and from the camera's) with that average as a prior on the
         base pose; a frame that disagrees (a wrong basin, or the camera moved) keeps its own fit. The frame's own
@@ -452,9 +482,9 @@ class Estimator:
             camera.observe(fitted.T_cam_base)
         result = (fitted.q, fitted.T_cam_base, fitted)
         if prior is not None:
-            refit = self.fitter.fit(detection.uv, weights, K, np.stack([fitted.q, fitted.q]),
-                                    np.stack([fitted.T_cam_base, prior.T_cam_base]), None, depth_prior_m,
-                                    silhouette=silhouette, base_prior=prior)
+            refit = self.fitter.fit(detection.uv, self.fit_weights(detection.confidence), K,
+                                    np.stack([fitted.q, fitted.q]), np.stack([fitted.T_cam_base, prior.T_cam_base]),
+                                    None, depth_prior_m, silhouette=silhouette, base_prior=prior)
             result = (refit.q, refit.T_cam_base, refit)
         timings["static_camera"] = (time.perf_counter() - t0) * 1e3
         return result

@@ -181,15 +181,15 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
                      f"{b['latency_ms_p50']:.0f} | {b['latency_ms_p95']:.0f} | {node_cells[0]} | {node_cells[1]} | "
                      f"{b['gflops']:.2f} | {b['params_m']:.1f} | " + " | ".join(aucs) + " |")
     lines += ["", "Per-stage medians (ms) of the same runs:", "",
-              "| model | backend | mode | image | localize | crop | network | kinematics | lifter | fit | messages |",
-              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              "| model | backend | mode | image | localize | crop | network | kinematics | lifter | fit | in-view refit | messages |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         b = r["bench"]
         s = {k: v["p50"] for k, v in b["stages_ms"].items()}
         lines.append(f"| {r['model']} | {b['backend']} | {'tracking' if b['tracking'] else 'localize + crop'} | "
                      f"{s['image_conversion']:.1f} | {s['localize']:.1f} | {s['crop']:.1f} | {s['network']:.1f} | "
                      f"{s['kinematics']:.1f} | {s.get('lifter', 0.0):.1f} | {s.get('fit', 0.0):.1f} | "
-                     f"{s['messages']:.1f} |")
+                     f"{s.get('in_view', 0.0):.1f} | {s['messages']:.1f} |")
     if candidates:
         lines += ["", "## Choosing `lite`: network-only latency of the candidates", "",
                   "Batch 1, one network pass, median of "

@@ -17,8 +17,8 @@ def test_benchmark_reports_stages_and_figures(tmp_path, small_model_card, capsys
     for key in ("fps", "latency_ms_p50", "latency_ms_p95", "gflops", "params_m", "peak_rss_mb", "device", "backend"):
         assert key in result
     stages = result["stages_ms"]
-    assert set(stages) == {"image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "messages",
-                           "total"}
+    assert set(stages) == {"image_conversion", "localize", "crop", "network", "kinematics", "lifter", "fit", "in_view",
+                           "messages", "total"}
     assert result["fit"] is True and result["parts"] is True and stages["fit"]["p50"] > 0
     assert stages["total"]["p50"] >= stages["network"]["p50"] > 0 and result["gflops"] > 0
     assert abs(result["fps"] - 1e3 / stages["total"]["mean"]) < 1e-6

@@ -225,3 +225,37 @@ def test_without_off_image_evidence_keypoints_outside_the_image_weigh_nothing(es
         estimator.off_image_evidence = True
     np.testing.assert_allclose(gated.joints, reference.joints, atol=1e-9)
     assert np.abs(kept.joints - gated.joints).max() > 1e-3
+
+
+def test_fit_keypoints_the_fit_puts_out_of_view_lose_their_confidence_and_the_frame_is_fitted_again(tmp_path):
+    """On truncated frames (the truncated look: the robot cut by the image border) the fit keypoints that the first
+    fit puts outside the image or within in_view_margin_px of its border weigh 0 in a second fit, from the first
+    fit and its starts; the estimate reports exactly that evidence, and its cost there is no higher than the first
+    fit's. With the margin negative the step is off and the estimate is the first fit's."""
+    generate("panda", 3, tmp_path, seed=77, workers=1, config="truncated", progress=False)
+    reader = DreamReader(tmp_path, "panda")
+    off = Estimator.from_model("panda", min_confidence=0.0, fit=True, fit_config={"in_view_margin_px": -1.0})
+    on = Estimator.from_model("panda", min_confidence=0.0, fit=True)
+    margin = on.fitter.config["in_view_margin_px"]
+    assert margin > 0
+    refitted = 0
+    for frame in reader:
+        image = reader.load_image(frame)
+        H, W = image.shape[:2]
+        detection = off.detect(image, frame.K)
+        first = off.estimate_detection(detection, frame.K, None, ("fitted",))["fitted"]
+        assert "in_view" not in first.timings_ms
+        uv = on.fitter.project(first.joints, first.T_cam_base, frame.K)
+        out = (uv[:, 0] < margin) | (uv[:, 0] > W - margin) | (uv[:, 1] < margin) | (uv[:, 1] > H - margin)
+        second = on.estimate_detection(detection, frame.K, None, ("fitted",))["fitted"]
+        if not (out & (on.fit_weights(detection.confidence) > 0)).any():
+            np.testing.assert_allclose(second.T_cam_base, first.T_cam_base, atol=1e-12)
+            continue
+        refitted += 1
+        assert "in_view" in second.timings_ms
+        np.testing.assert_array_equal(second.detected_confidence, np.where(out, 0.0, detection.confidence))
+        w = on.fit_weights(second.detected_confidence)
+        costs = on.fitter.cost(detection.uv, w, frame.K, np.stack([second.joints, first.joints]),
+                               np.stack([second.T_cam_base, first.T_cam_base]))
+        assert costs[0] <= costs[1] * (1 + 1e-9)
+    assert refitted >= 2  # truncated frames: the step ran

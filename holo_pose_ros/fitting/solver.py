@@ -259,6 +259,13 @@ class Fitter:
             W += self._silhouette_weight(silhouette)
         return F_data / W if W > 0 else np.full(len(q), np.inf)
 
+    def project(self, q: np.ndarray, T_cam_base: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """(M, 2) pixels where the fit keypoints lie at joints q (J,) and pose T_cam<-base (4, 4) through K."""
+        T = np.asarray(T_cam_base, float)
+        P = self.tree.points(np.asarray(q, float)[None])
+        return project(transform_points(P, T[None, :3, :3], T[None, :3, 3]), np.asarray(K, float),
+                       self.config["min_depth_m"])[0]
+
     def _data_terms(self, uv: np.ndarray, w: np.ndarray, K: np.ndarray, q: np.ndarray, R: np.ndarray,
                     t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """sum w rho(|r|^2) (S,) and sum w |r|^2 (S,), px^2, at poses (q, R, t) without derivatives."""
