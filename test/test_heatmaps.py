@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from holo_pose_ros.model.heatmaps import decode_heatmaps, gaussian_targets, heatmap_cross_entropy
+from holo_pose_ros.model.heatmaps import decode_heatmaps, gaussian_targets, heatmap_cross_entropy, heatmap_flatness
 
 SIZE, CROP = 48, 192
 
@@ -95,3 +95,22 @@ def test_decoder_is_unbiased_at_and_beyond_the_crop_border():
             worst_cells = ((decoded[0] - uv) / cell).abs().max()
             assert (bias_cells < 0.05).all(), (side, sigma, bias_cells)
             assert worst_cells < 0.1, (side, sigma, float(worst_cells))
+
+
+def test_flatness_is_zero_for_a_flat_heatmap_and_teaches_an_unseen_point_a_low_confidence():
+    """heatmap_flatness: 0 on a flat map, positive on a peaked one, masked points ignored; gradient descent on it
+    turns a confident peak (a point the view cannot show) into a map whose decoded confidence is near 0."""
+    flat = torch.zeros(1, 2, SIZE, SIZE)
+    peaked = torch.log(gaussian_targets(random_points(2), SIZE, CROP, 1.0) + 1e-12)
+    everywhere = torch.ones(1, 2, dtype=torch.bool)
+    assert abs(float(heatmap_flatness(flat, everywhere))) < 1e-6
+    assert float(heatmap_flatness(peaked, everywhere)) > 1.0
+    assert float(heatmap_flatness(peaked, torch.zeros(1, 2, dtype=torch.bool))) == 0.0
+    logits = peaked.clone().requires_grad_(True)
+    assert float(decode_heatmaps(logits.detach(), CROP)[1].min()) > 0.9
+    optimizer = torch.optim.SGD([logits], lr=50.0)
+    for _ in range(100):
+        optimizer.zero_grad()
+        heatmap_flatness(logits, everywhere).backward()
+        optimizer.step()
+    assert float(decode_heatmaps(logits.detach(), CROP)[1].max()) < 0.05

@@ -35,6 +35,16 @@ def heatmap_cross_entropy(logits: torch.Tensor, targets: torch.Tensor, mask: tor
     return (ce * m).sum() / m.sum().clamp(min=1.0)
 
 
+def heatmap_flatness(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """KL divergence from the uniform distribution to each keypoint's heatmap softmax (B, K, H, W logits), averaged
+    over the keypoints where `mask` (B, K) is true; 0 for flat heatmaps, 0 when none is masked. For points the view
+    cannot show (outside the image): a flat heatmap has no peak, so its decoded confidence is ~0 and the fit gives
+    the guess no weight, where a heatmap left untrained peaks anywhere."""
+    log_p = torch.log_softmax(logits.flatten(2).float(), -1)
+    kl = -log_p.mean(-1) - torch.log(torch.tensor(float(log_p.shape[-1]), device=logits.device))   # (B, K)
+    return torch.where(mask, kl, torch.zeros_like(kl)).sum() / mask.sum().clamp(min=1).to(kl.dtype)
+
+
 def expected_positions(logits: torch.Tensor, crop_size: int) -> torch.Tensor:
     """(B, K, H, W) logits -> (B, K, 2) crop pixels: the expectation of each heatmap's softmax (soft-argmax). A
     loss on it (integral regression) makes the decoded position unbiased, where the cross-entropy alone rewards

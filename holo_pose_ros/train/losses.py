@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from holo_pose_ros.data.training import MODES
-from holo_pose_ros.model.heatmaps import expected_positions, gaussian_targets, heatmap_cross_entropy
+from holo_pose_ros.model.heatmaps import expected_positions, gaussian_targets, heatmap_cross_entropy, heatmap_flatness
 
 CROP, FULL, NEGATIVE, CLOSE_UP = (MODES.index(m) for m in ("crop", "full", "negative", "close_up"))
 
@@ -37,7 +37,8 @@ def mask_loss(mask_logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], joint_mid: torch.Tensor,
                       joint_half: torch.Tensor, crop_size: int, heatmap_sigma: float = 1.0) -> dict[str, torch.Tensor]:
     """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets.
-    `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points) and
+    `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points),
+    `heatmap_unseen` (their flatness where the view cannot show them: outside the image or the crop) and
     `fit_coord` (L1 of their soft-argmax, heatmap cells) are there when the network has fit heatmaps; `mask`
     (binary cross-entropy of the robot foreground against each cell's robot fraction, every view) with a
     segmentation head."""
@@ -54,6 +55,7 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
         targets = gaussian_targets(batch["uv_fit"], logits.shape[-1], crop_size, heatmap_sigma)
         seen = batch["visible_fit"] & robot[:, None]
         extra["heatmap"] = heatmap_cross_entropy(logits, targets, seen)
+        extra["heatmap_unseen"] = heatmap_flatness(logits, ~batch["visible_fit"] & robot[:, None])
         cell_px = crop_size / logits.shape[-1]
         extra["fit_coord"] = _masked_mean((expected_positions(logits, crop_size) - batch["uv_fit"]).abs().sum(-1) / cell_px, seen)
     if "mask_logits" in out:
