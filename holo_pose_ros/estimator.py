@@ -105,6 +105,9 @@ class Estimator:
     or its card's `estimator.close_ups` says so; a network trained with `close_up` views) each of the robot YAML's
     `close_ups` (an arm, a hand) with enough confident keypoints in the crop pass gets a pass of its own, on a box
     around them at the part's own scale, whose detections of that part's fit keypoints replace the crop pass's.
+    After the fit, fit keypoints that it puts outside the image (or within the fit config's `in_view_margin_px`
+    of its border) lose their confidence and the frame is fitted again from its fit and its starts: the network
+    never learnt where a point it cannot see goes, so on truncated frames those detections are guesses.
     With `static_camera` (off unless asked: only the user knows that neither camera nor base moves) the robust
     average of earlier frames' fitted base poses is a prior on each frame's fit (static_camera.py).
     The whole-image pass is the network's 2D-only `localize` (presence and DREAM's keypoints from their fit heatmaps;
