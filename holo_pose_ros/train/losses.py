@@ -38,7 +38,7 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
                       joint_half: torch.Tensor, crop_size: int, heatmap_sigma: float = 1.0) -> dict[str, torch.Tensor]:
     """Every loss term (unweighted) of one batch: network output (with `add_kinematics`) against the targets.
     `heatmap` (cross-entropy of the fit keypoints' 2D heatmaps, every view with a robot, in-crop points),
-    `heatmap_unseen` (their flatness where the view cannot show them: outside the image or the crop) and
+    `heatmap_out_of_view` (their flatness where the view cannot show them: outside the image or the crop) and
     `fit_coord` (L1 of their soft-argmax, heatmap cells) are there when the network has fit heatmaps; `mask`
     (binary cross-entropy of the robot foreground against each cell's robot fraction, every view) with a
     segmentation head."""
@@ -55,7 +55,7 @@ def supervised_losses(out: dict[str, torch.Tensor], batch: dict[str, torch.Tenso
         targets = gaussian_targets(batch["uv_fit"], logits.shape[-1], crop_size, heatmap_sigma)
         seen = batch["visible_fit"] & robot[:, None]
         extra["heatmap"] = heatmap_cross_entropy(logits, targets, seen)
-        extra["heatmap_unseen"] = heatmap_flatness(logits, ~batch["visible_fit"] & robot[:, None])
+        extra["heatmap_out_of_view"] = heatmap_flatness(logits, ~batch["visible_fit"] & robot[:, None])
         cell_px = crop_size / logits.shape[-1]
         extra["fit_coord"] = _masked_mean((expected_positions(logits, crop_size) - batch["uv_fit"]).abs().sum(-1) / cell_px, seen)
     if "mask_logits" in out:
