@@ -426,7 +426,7 @@ class Estimator:
                                                     depth_prior_m if use_prior else None, silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             if detection.image_size is not None and self.fitter.config["in_view_margin_px"] >= 0:
-                fitted, evidence["fitted"] = self._in_view_refit(detection, K, fitted, q0, T0, known_joints,
+                fitted, evidence["fitted"] = self._in_view_refit(detection, K, weights, fitted, q0, T0, known_joints,
                                                                  depth_prior_m if use_prior else None, silhouette,
                                                                  timings)
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
@@ -448,24 +448,22 @@ class Estimator:
         self._previous = last if last.found else None
         return results
 
-    def _in_view_refit(self, detection: Detection, K: np.ndarray, fitted, q0: np.ndarray, T0: np.ndarray,
-                       known_joints, depth_prior_m: float | None, silhouette, timings: dict) -> tuple:
+    def _in_view_refit(self, detection: Detection, K: np.ndarray, weights: np.ndarray, fitted, q0: np.ndarray,
+                       T0: np.ndarray, known_joints, depth_prior_m: float | None, silhouette, timings: dict) -> tuple:
         """Fit keypoints that the fit puts outside the image, or within the fit config's `in_view_margin_px` of its
         border, are guesses, not evidence: the network never learnt where a point it cannot see goes (trained only
         on points in view, on truncated frames it puts them ~200 px off, many inside the image). They lose their
-        confidence and the frame is fitted again, plainly, from its fit and from its starts q0 (S, J), T0 (S, 4, 4).
-        Returns (fit, the detection as that fit used it); the 'in_view' timing."""
+        confidence (and their fit `weights`) and the frame is fitted again, plainly, from its fit and from its
+        starts q0 (S, J), T0 (S, 4, 4). Returns (fit, the detection as that fit used it); the 'in_view' timing."""
         if not np.isfinite(fitted.cost):
             return fitted, detection
         t0 = time.perf_counter()
-        W, H = detection.image_size
-        margin = float(self.fitter.config["in_view_margin_px"])
         uv = self.fitter.project(fitted.q, fitted.T_cam_base, K)
-        out = (uv[:, 0] < margin) | (uv[:, 0] > W - margin) | (uv[:, 1] < margin) | (uv[:, 1] > H - margin)
-        if not (out & (self.fit_weights(detection.confidence) > 0)).any():
+        out = ~in_image(uv, *detection.image_size, margin_px=float(self.fitter.config["in_view_margin_px"]))
+        if not (out & (weights > 0)).any():
             return fitted, detection
         in_view = dataclasses.replace(detection, confidence=np.where(out, 0.0, detection.confidence))
-        refit = self.fitter.fit(in_view.uv, self.fit_weights(in_view.confidence), K,
+        refit = self.fitter.fit(in_view.uv, np.where(out, 0.0, weights), K,
                                 np.concatenate([fitted.q[None], q0]), np.concatenate([fitted.T_cam_base[None], T0]),
                                 known_joints, depth_prior_m, silhouette=silhouette)
         timings["in_view"] = (time.perf_counter() - t0) * 1e3

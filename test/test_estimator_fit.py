@@ -8,6 +8,7 @@ import pytest
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate
 from holo_pose_ros.estimator import METHODS, Estimator
+from holo_pose_ros.geometry.camera import in_image
 
 
 @pytest.fixture(scope="module")
@@ -246,7 +247,7 @@ def test_fit_keypoints_the_fit_puts_out_of_view_lose_their_confidence_and_the_fr
         first = off.estimate_detection(detection, frame.K, None, ("fitted",))["fitted"]
         assert "in_view" not in first.timings_ms
         uv = on.fitter.project(first.joints, first.T_cam_base, frame.K)
-        out = (uv[:, 0] < margin) | (uv[:, 0] > W - margin) | (uv[:, 1] < margin) | (uv[:, 1] > H - margin)
+        out = ~in_image(uv, W, H, margin_px=margin)
         second = on.estimate_detection(detection, frame.K, None, ("fitted",))["fitted"]
         if not (out & (on.fit_weights(detection.confidence) > 0)).any():
             np.testing.assert_allclose(second.T_cam_base, first.T_cam_base, atol=1e-12)

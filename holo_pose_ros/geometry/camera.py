@@ -18,9 +18,11 @@ def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     return (p[..., :2] / z) * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
 
 
-def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(N,) bool: pixel inside the image, DREAM's inclusive rule 0 <= u <= W, 0 <= v <= H."""
-    return (uv[..., 0] >= 0) & (uv[..., 0] <= width) & (uv[..., 1] >= 0) & (uv[..., 1] <= height)
+def in_image(uv: np.ndarray, width: int, height: int, margin_px: float = 0.0) -> np.ndarray:
+    """(N,) bool: pixel inside the image, DREAM's inclusive rule 0 <= u <= W, 0 <= v <= H; with `margin_px`, at
+    least that far inside every border."""
+    m = margin_px
+    return (uv[..., 0] >= m) & (uv[..., 0] <= width - m) & (uv[..., 1] >= m) & (uv[..., 1] <= height - m)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]), roll: float = 0.0) -> np.ndarray:
