@@ -7,6 +7,7 @@ keypoints, camera frame). Wall-clock and process CPU time per fit are both shown
 the closer estimate of a quiet machine's wall time. Single-threaded numpy; compare e.g.
     OMP_NUM_THREADS=1 python scripts/bench_fit.py
     OMP_NUM_THREADS=1 python scripts/bench_fit.py --robot baxter --starts 8
+    OMP_NUM_THREADS=1 python scripts/bench_fit.py --parts --starts 3     # the search by parts (fitting/parts.py)
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import torch
 from holo_pose_ros.data.generator import load_generator_config
 from holo_pose_ros.evaluation.metrics import add_auc, add_per_frame
 from holo_pose_ros.fitting import Fitter
+from holo_pose_ros.fitting.parts import PartsFitter
 from holo_pose_ros.fitting.synthetic import keypoints_in_camera, perturbed_start, sample_problem
 from holo_pose_ros.robots.kinematics import RobotModel
 
@@ -31,11 +33,13 @@ def main() -> None:
     parser.add_argument("--starts", type=int, default=4, help="starts per frame: one 30-degree, the rest 60-degree")
     parser.add_argument("--noise-px", type=float, default=3.0, help="sigma of the noisy run's pixel noise")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--parts", action="store_true", help="time the search by parts (PartsFitter) instead")
     args = parser.parse_args()
 
     torch.set_num_threads(1)
     model = RobotModel(args.robot, dtype=torch.float64)
     fitter = Fitter(model)
+    search = PartsFitter(fitter) if args.parts else fitter
     generator = load_generator_config("randomized")
     prismatic = np.array([t == "prismatic" for t in model.joint_types])
     rng = np.random.default_rng(args.seed)
@@ -50,17 +54,17 @@ def main() -> None:
 
     n = model.n_keypoints
     print(f"{args.robot}: {fitter.tree.n_points} fit points, {model.n_joints} joints, {args.starts} starts, "
-          f"{args.frames} frames, iterations <= {fitter.config['iterations']}")
+          f"{args.frames} frames, iterations <= {fitter.config['iterations']}{', by parts' if args.parts else ''}")
     print(f"{'pixels':<14}{'p50 ms':>8}{'p95 ms':>8}{'cpu p50':>9}{'cpu p95':>9}{'iters':>7}{'ADD med mm':>12}"
           f"{'mean mm':>9}{'<5 mm %':>9}{'AUC':>7}{'30deg won %':>13}")
     for label, sigma in (("exact", 0.0), (f"{args.noise_px:g} px noise", 1.0)):
         for problem, q0, T0, noise in frames[:5]:                           # warm-up
-            fitter.fit(problem.uv, np.ones(len(problem.uv)), problem.K, q0, T0)
+            search.fit(problem.uv, np.ones(len(problem.uv)), problem.K, q0, T0)
         times, cpu, adds, iterations, first = [], [], [], [], []
         for problem, q0, T0, noise in frames:
             uv = problem.uv + sigma * noise
             t0, c0 = time.perf_counter(), time.process_time()
-            result = fitter.fit(uv, np.ones(len(uv)), problem.K, q0, T0)
+            result = search.fit(uv, np.ones(len(uv)), problem.K, q0, T0)
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
             pred = keypoints_in_camera(fitter.tree, result.q, result.T_cam_base, n)

@@ -45,6 +45,33 @@ def test_chains_split_baxter_into_head_and_arms(fitters):
     assert panda.n_chains == 1 and (panda.joint_chain == 0).all()
 
 
+def test_a_fitter_restricted_to_some_points_fits_as_the_whole_one_with_the_others_weighing_0(fitters):
+    """Fitter.restricted_to (the sweep's fits): Baxter restricted to its torso's and left arm's points, the bodies of
+    the head and the right arm pruned, fits noisy 2D from a perturbed start to the same result as the whole robot
+    whose other points weigh 0, with the depth prior on (its root point kept)."""
+    baxter = fitters["baxter"]
+    chains = chains_of(baxter.tree)
+    left = chains.point_chain[[i for i, k in enumerate(baxter.robot.spec.fit_keypoints) if k.link == "left_hand_link"][0]]
+    points = np.union1d(np.flatnonzero(np.isin(chains.point_chain, (left, -1))), baxter.depth_points)
+    restricted = baxter.restricted_to(points)
+    assert restricted.tree.n_points == len(points) and restricted.tree.n_bodies < baxter.tree.n_bodies
+    rng = np.random.default_rng(31)
+    problem = sample_problem(baxter.tree, baxter.lower, baxter.upper, load_generator_config("randomized"), rng)
+    uv = problem.uv + rng.normal(0.0, 3.0, problem.uv.shape)
+    w = np.zeros(len(uv))
+    w[points] = rng.uniform(0.3, 1.0, len(points))
+    q0 = np.clip(problem.q + rng.normal(0.0, 0.2, problem.q.shape), baxter.lower, baxter.upper)
+    depth = baxter.prior_depth(problem.q, problem.T_cam_base)
+    whole = baxter.fit(uv, w, problem.K, q0[None], problem.T_cam_base[None], depth_prior_m=depth)
+    part = restricted.fit(uv[points], w[points], problem.K, q0[None], problem.T_cam_base[None], depth_prior_m=depth)
+    assert np.isfinite(whole.cost) and part.cost == pytest.approx(whole.cost, rel=1e-9)
+    np.testing.assert_allclose(part.q, whole.q, atol=1e-8)
+    np.testing.assert_allclose(part.T_cam_base, whole.T_cam_base, atol=1e-8)
+    assert not np.allclose(part.q, q0)                                   # it did fit
+    with pytest.raises(ValueError, match="depth prior"):
+        baxter.restricted_to(np.setdiff1d(points, baxter.depth_points))
+
+
 def _lifter_starts(lifter, fitter: Fitter, problem, weights: np.ndarray, n_starts: int = 2):
     """The estimator's lifter starts from exact 2D: the `n_starts` hypotheses that reproject best."""
     n = fitter.robot.n_keypoints

@@ -183,6 +183,26 @@ class KinematicTree:
         return KinematicTree(self.parent, self.C, self.axis, self.prismatic, self.source, self.gain, self.bias,
                              np.concatenate(body), np.concatenate(local), self.n_joints, self.link_frames)
 
+    def restricted_to(self, points: np.ndarray) -> "KinematicTree":
+        """The tree carrying only the fit points at indices `points` (in that order), and only the bodies on their
+        paths to the base: a fit that weighs the other points 0 costs the same on it for a fraction of the work (the
+        search by parts' sweep). Links on the bodies left out are left out of link_frames."""
+        idx = np.asarray(points, int).reshape(-1)
+        keep = np.zeros(self.n_bodies, bool)
+        keep[0] = True
+        for b in set(self.point_body[idx].tolist()):
+            while not keep[b]:
+                keep[b], b = True, self.parent[b]
+        bodies = np.flatnonzero(keep)                 # breadth-first order kept: parents still come first
+        new = np.full(self.n_bodies, -1)
+        new[bodies] = np.arange(len(bodies))
+        parent = new[self.parent[bodies]]
+        parent[0] = 0
+        frames = {name: (int(new[b]), T) for name, (b, T) in self.link_frames.items() if keep[b]}
+        return KinematicTree(parent, self.C[bodies], self.axis[bodies], self.prismatic[bodies], self.source[bodies],
+                             self.gain[bodies], self.bias[bodies], new[self.point_body[idx]], self.point_local[idx],
+                             self.n_joints, frames)
+
     # -- kinematics -----------------------------------------------------------------------------------------
     def body_poses(self, q: np.ndarray) -> np.ndarray:
         """(S, B, 4, 4) poses T_base<-body of every body (joint frames after their motion) for joints q (S, J)."""

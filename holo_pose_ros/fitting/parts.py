@@ -57,6 +57,18 @@ def chains_of(tree: KinematicTree) -> Chains:
     return Chains(joint_chain, point_chain, tree.point_joints, len(roots))
 
 
+@dataclass(frozen=True)
+class SweepStep:
+    """One step of a chain's sweep: the joints it sweeps and the fit points it sees, fixed per robot."""
+
+    pair: np.ndarray        # (1 or 2,) indices of the joints swept together
+    points: np.ndarray      # (M',) fit points the step's fits work on: those the joints so far fix (the chain's and
+                            # the base's) and the depth prior's
+    fixed: np.ndarray       # (M',) bool: which of them the joints so far fix (the others weigh 0)
+    moved: np.ndarray       # (M',) bool: which of them the pair moves
+    screen: Fitter          # the short refining fit, restricted to `points`
+
+
 class PartsFitter:
     """Fitter.fit plus the search of this module; build once per robot (wraps a Fitter), call fit() per frame."""
 
@@ -66,14 +78,33 @@ class PartsFitter:
         self.screen = Fitter(fitter.robot, {**fitter.config, "iterations": fitter.config["parts_refine_iterations"]})
         self.chains = chains_of(fitter.tree)
         self.revolute = np.array([t != "prismatic" for t in fitter.robot.joint_types])
+        self.sweeps = [self.sweep_steps(c) for c in range(self.chains.n_chains)]
+
+    def sweep_steps(self, chain: int) -> list[SweepStep]:
+        """The steps of `chain`'s sweep: its revolute joints two at a time from the base outwards, each step's fits
+        restricted to the points that the joints so far fix (its fits weigh the others 0, so on the whole robot
+        they would cost the same for the work of every point)."""
+        joints = np.flatnonzero((self.chains.joint_chain == chain) & self.revolute)
+        in_chain = np.isin(self.chains.point_chain, (chain, -1))            # its points and the base's
+        other = np.flatnonzero(~np.isin(np.arange(self.fitter.tree.n_joints), joints))
+        steps = []
+        for k in range(0, len(joints), 2):
+            pair = joints[k:k + 2]
+            fixed = in_chain & ~self.chains.moves[:, np.concatenate([joints[k + 2:], other])].any(axis=1)
+            points = np.union1d(np.flatnonzero(fixed), self.fitter.depth_points)
+            steps.append(SweepStep(pair, points, fixed[points], self.chains.moves[points][:, pair].any(axis=1),
+                                   self.screen.restricted_to(points)))
+        return steps
 
     def point_costs(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q: np.ndarray,
-                    T_cam_base: np.ndarray, scale_px: float | None = None) -> np.ndarray:
+                    T_cam_base: np.ndarray, scale_px: float | None = None, fitter: Fitter | None = None) -> np.ndarray:
         """(S, M) each fit point's weighted robust reprojection cost (px^2) at poses q (S, J), T (S, 4, 4), the
-        robust loss at `scale_px` (default: the fit's robust_scale_px)."""
+        robust loss at `scale_px` (default: the fit's robust_scale_px); the points of `fitter` (default: the whole
+        robot's; a sweep step's restricted one)."""
         cfg = self.fitter.config
         T = np.asarray(T_cam_base, float).reshape(-1, 4, 4)
-        r = reprojection_residuals(self.fitter.tree.points(q), T[:, :3, :3], T[:, :3, 3], np.asarray(K, float),
+        tree = (fitter or self.fitter).tree
+        r = reprojection_residuals(tree.points(q), T[:, :3, :3], T[:, :3, 3], np.asarray(K, float),
                                    np.asarray(uv, float), cfg["min_depth_m"])
         rho, _ = robust_weights(np.sum(r * r, axis=-1), cfg["robust_loss"],
                                 cfg["robust_scale_px"] if scale_px is None else scale_px)
@@ -98,25 +129,23 @@ class PartsFitter:
         joints so far fix (and the base's), the best `parts_beam` refined by a short fit on those points. Returns
         the final beam (q (B, J), T (B, 4, 4))."""
         cfg, fitter = self.fitter.config, self.fitter
-        joints = np.flatnonzero((self.chains.joint_chain == chain) & self.revolute)
-        in_chain = np.isin(self.chains.point_chain, (chain, -1))            # its points and the base's
-        other = ~np.isin(np.arange(fitter.tree.n_joints), joints)
         beam_q, beam_T = q[None], T_cam_base[None]
         steps, width = int(cfg["parts_grid_steps"]), int(cfg["parts_beam"])
-        for k in range(0, len(joints), 2):
-            pair = joints[k:k + 2]
-            later = np.concatenate([joints[k + 2:], np.flatnonzero(other)])
-            seen = np.where(in_chain & ~self.chains.moves[:, later].any(axis=1), w, 0.0)   # fixed by the joints so far
-            if np.count_nonzero(seen[self.chains.moves[:, pair].any(axis=1)]) == 0:
+        for step in self.sweeps[chain]:
+            seen = np.where(step.fixed, w[step.points], 0.0)                 # fixed by the joints so far
+            if np.count_nonzero(seen[step.moved]) == 0:
                 continue                                   # nothing these joints move is seen: keep the beam
+            pair = step.pair
             grids = np.meshgrid(*[np.linspace(fitter.lower[j], fitter.upper[j], steps) for j in pair], indexing="ij")
             values = np.stack([g.ravel() for g in grids], axis=1)                  # (G, len(pair))
             cand_q = np.repeat(beam_q, len(values), 0)
             cand_q[:, pair] = np.tile(values, (len(beam_q), 1))
             cand_T = np.repeat(beam_T, len(values), 0)
-            costs = self.point_costs(uv, seen, K, cand_q, cand_T, cfg["parts_grid_scale_px"]).sum(axis=1)
+            uv_seen = uv[step.points]
+            costs = self.point_costs(uv_seen, seen, K, cand_q, cand_T, cfg["parts_grid_scale_px"],
+                                     step.screen).sum(axis=1)
             order = np.argsort(costs, kind="stable")[:width]
-            refined = self.screen.fit(uv, seen, K, cand_q[order], cand_T[order], depth_prior_m=depth_prior_m)
+            refined = step.screen.fit(uv_seen, seen, K, cand_q[order], cand_T[order], depth_prior_m=depth_prior_m)
             beam_q, beam_T = refined.q_starts, refined.T_starts
         return beam_q, beam_T
 

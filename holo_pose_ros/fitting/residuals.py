@@ -89,14 +89,18 @@ def mean_depth_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.
     """Mean camera depth z (S,) of the points P_base (S, M, 3) through (R, t), metres, and its Jacobian (S, J + 6)
     with respect to (dq, dphi, dt), as for the residuals; dP_dq None for a pose-only fit (J = 0). Depth is
     linear in the points, so this is the depth of their centroid."""
-    centroid = P_base.mean(axis=1)                                            # (S, 3)
+    k = P_base.shape[1]
+    centroid = P_base[:, 0] if k == 1 else P_base.sum(axis=1) / k            # (S, 3)
     rz = R[:, 2, :]                                                           # (S, 3): d z / d P_base
-    z = np.einsum("si,si->s", rz, centroid) + t[:, 2]
+    z = np.sum(rz * centroid, axis=-1) + t[:, 2]
     n = 0 if dP_dq is None else dP_dq.shape[-1]
     jac = np.zeros((len(R), n + 6))
     if dP_dq is not None:
-        jac[:, :n] = np.einsum("si,sij->sj", rz, dP_dq.mean(axis=1))
-    jac[:, n:n + 3] = np.cross(centroid, rz)                                  # dX/dphi = -R [P]x, as above
+        d_centroid = dP_dq[:, 0] if k == 1 else dP_dq.sum(axis=1) / k        # (S, 3, J)
+        jac[:, :n] = np.sum(rz[:, :, None] * d_centroid, axis=1)
+    # dX/dphi = -R [P]x, as above: the rotation columns are centroid x rz (written out: np.cross costs more here)
+    (cx, cy, cz), (ax, ay, az) = centroid.T, rz.T
+    jac[:, n], jac[:, n + 1], jac[:, n + 2] = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
     jac[:, n + 5] = 1.0
     return z, jac
 

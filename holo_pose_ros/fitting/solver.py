@@ -25,6 +25,7 @@ the distal ones keeps the distal joints from absorbing their errors: from 30-deg
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -196,6 +197,20 @@ class Fitter:
         # fit points whose mean depth the depth prior holds: the root keypoint (a DREAM keypoint, so fit point
         # root_index) or all of them
         self.depth_points = np.array([robot.root_index]) if on == "root" else np.arange(self.tree.n_points)
+
+    def restricted_to(self, points: np.ndarray) -> "Fitter":
+        """This Fitter over the fit points at indices `points` only (M' of them: uv and weights then have M' rows),
+        which must hold the depth prior's points. A fit whose other points weigh 0 gives the same result on it, with
+        the work of M' points (the search by parts fits subsets of the points many times a frame). No silhouette."""
+        idx = np.asarray(points, int).reshape(-1)
+        where = {int(m): i for i, m in enumerate(idx)}
+        if any(int(m) not in where for m in self.depth_points):
+            raise ValueError("a restricted Fitter must keep the depth prior's points")
+        restricted = copy.copy(self)
+        restricted.tree = self.tree.restricted_to(idx)
+        restricted.depth_points = np.array([where[int(m)] for m in self.depth_points])
+        restricted.surface_tree, restricted.surface_normals = None, None
+        return restricted
 
     # -- inputs ---------------------------------------------------------------------------------------------
     def silhouette(self, mask: np.ndarray) -> Silhouette:
