@@ -11,11 +11,12 @@ The search, after the plain fit from the given starts, is a **chain sweep**: for
 from the base: Baxter's head and arms; a single arm is one chain), from the best fit, its revolute joints two at a
 time from the base outwards, each pair over a grid of `parts_grid_steps` values per joint within the limits for
 every member of a beam, ranked by the cost of the points that the joints so far fix, the best `parts_beam` refined
-by a short fit on those points (`parts_refine_iterations`); then one fit of the whole tree from every chain's beam
-and from their combination (each chain's best under one base pose). With it Baxter's exact-2D views are recovered
-in 100 % (test/test_fitting_parts.py). Measured on detected 2D and not kept (config/parts_sweep.yaml): the base pose
-fitted first to the points that no joint moves, and rounds of one-joint escapes (roll joints half and whole turns
-away, flips, pitch steps) from the best fit; neither changed the validation AUC beyond noise, at 5 to 20 ms more.
+by a short fit on those points (`parts_refine_iterations`; on a Fitter restricted to them, which gives the whole
+robot's result with the other points weighing 0 for a quarter less time); then one fit of the whole tree from every
+chain's beam and from their combination (each chain's best under one base pose). With it Baxter's exact-2D views are
+recovered in 100 % (test/test_fitting_parts.py). Measured on detected 2D and not kept (config/parts_sweep.yaml): the
+base pose fitted first to the points that no joint moves, and rounds of one-joint escapes (roll joints half and whole
+turns away, flips, pitch steps) from the best fit; neither changed the validation AUC beyond noise, at 5 to 20 ms more.
 The lowest cost wins, and the search never returns a higher cost than the plain fit.
 """
 
