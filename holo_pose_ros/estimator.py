@@ -88,7 +88,8 @@ class Estimator:
     choice, `estimator.fit`, when it has one). A keypoint weighs its heatmap confidence to the power
     `keypoint_weight_power` in the fit (sharp peaks are far more often right); a weight below
     `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
-    start it. With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
+    start it (`tracked_lifter_starts` on a tracked frame, which starts from the previous frame's fit: by default
+    none, so the lifter does not run there). With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
     (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
     confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
     extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
@@ -118,7 +119,8 @@ class Estimator:
     def __init__(self, net: HolisticNet, robot: RobotModel, device: str | torch.device = "cpu",
                  min_confidence: float = 0.5, tracking: bool = False, network: Callable | None = None,
                  backend: str = "torch", fit: bool | None = None, lifter=None, fit_config: dict | str | None = None,
-                 min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, keypoint_weight_power: float = 2.0,
+                 min_keypoint_confidence: float = 0.1, lifter_starts: int = 2, tracked_lifter_starts: int = 0,
+                 keypoint_weight_power: float = 2.0,
                  depth_prior: bool = True, silhouette: bool = False, off_image_evidence: bool = True,
                  parts: bool = False, parts_tracked: bool = True, localize_size: int | None = None,
                  localizer: Callable | None = None, close_ups: bool = False,
@@ -138,6 +140,7 @@ class Estimator:
         self.auto_fit = bool(net.cfg.fit_heatmaps and lifter is not None)
         self.fit = self.auto_fit if fit is None else fit
         self.min_keypoint_confidence, self.lifter_starts = min_keypoint_confidence, lifter_starts
+        self.tracked_lifter_starts = tracked_lifter_starts
         self.keypoint_weight_power, self.depth_prior = keypoint_weight_power, depth_prior
         self.off_image_evidence = off_image_evidence
         self.parts, self.parts_tracked, self._parts_fitter = bool(parts), bool(parts_tracked), None
@@ -401,17 +404,18 @@ class Estimator:
             seen = in_image(detection.uv, *detection.image_size)
             detection = dataclasses.replace(detection, confidence=np.where(seen, detection.confidence, 0.0))
         weights = self.fit_weights(detection.confidence)
+        from_previous = tracked and previous is not None and previous.joints is not None
+        lifter_starts = self.tracked_lifter_starts if from_previous else self.lifter_starts
         hypotheses = self._lifter_hypotheses(detection, K, known_joints, timings) if self.lifter is not None and (
-            "lifter" in methods or "fitted" in methods) else None
+            "lifter" in methods or ("fitted" in methods and lifter_starts > 0)) else None
         if hypotheses is not None:  # best first, by reprojection cost
             order = np.argsort(self.fitter.cost(detection.uv, weights, K, hypotheses[0], hypotheses[1]), kind="stable")
             hypotheses = hypotheses[0][order], hypotheses[1][order]
             poses["lifter"] = (hypotheses[0][0], hypotheses[1][0], None)
         if "fitted" in methods:
             q0, T0 = [ff["joints"][None]], [ff["T_cam_base"][None]]
-            if hypotheses is not None:  # the `lifter_starts` best hypotheses: each start costs about 0.5 ms of fit
-                q0.append(hypotheses[0][:self.lifter_starts]); T0.append(hypotheses[1][:self.lifter_starts])
-            from_previous = tracked and previous is not None and previous.joints is not None
+            if hypotheses is not None:  # the best `lifter_starts`: each start costs about 0.5 ms of fit
+                q0.append(hypotheses[0][:lifter_starts]); T0.append(hypotheses[1][:lifter_starts])
             if from_previous:
                 q0.append(previous.joints[None]); T0.append(previous.T_cam_base[None])
             t1 = time.perf_counter()

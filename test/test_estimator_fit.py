@@ -142,6 +142,13 @@ def test_tracking_starts_the_fit_from_the_previous_frame(frames):
     assert "localize" not in second.timings_ms
     # the previous frame's answer is a start: on the same image, the tracked fit explains it at least as well
     assert second.fit_rms_px <= first.fit_rms_px * 1.5
+    # a tracked frame starts from it and the paper heads' estimate: the lifter runs only on frames fitted afresh,
+    # unless asked for on tracked frames too (tracked_lifter_starts) or for its own estimate
+    assert "lifter" in first.timings_ms and "lifter" not in second.timings_ms
+    with_lifter = Estimator.from_model("panda", min_confidence=0.0, tracking=True, fit=True, tracked_lifter_starts=2)
+    with_lifter.estimate(image, frame.K)
+    assert "lifter" in with_lifter.estimate(image, frame.K).timings_ms
+    assert estimator.estimate_methods(image, frame.K, None, ("lifter", "fitted"))["lifter"].found
 
 
 def test_the_depth_prior_pulls_the_fit_towards_the_paper_heads_depth(frames):
