@@ -523,10 +523,10 @@ class Estimator:
                             ff: dict, tracked: bool, timings: dict, names: dict) -> Estimate:
         """An Estimate from joints and base pose. Its confidence is the presence probability times the fit's
         quality (1 without a fit); below `min_confidence` the robot is 'not found'."""
-        with torch.inference_mode():  # one FK call: the fit keypoints list DREAM's first
-            qt = torch.as_tensor(q[None], dtype=self.robot.dtype, device=self.device)
-            Tt = torch.as_tensor(T_cam_base[None], dtype=self.robot.dtype, device=self.device)
-            fit_points = self.robot.fit_keypoints_in_camera(qt, Tt)[0].double().cpu().numpy()
+        # one FK call of the fit's numpy kinematic tree (a tenth of a torch call's 0.4 ms); the fit keypoints list
+        # DREAM's first
+        T = np.asarray(T_cam_base, dtype=np.float64)
+        fit_points = self.fitter.tree.points(np.asarray(q, dtype=np.float64)[None])[0] @ T[:3, :3].T + T[:3, 3]
         quality = 1.0 if fit is None else 1.0 / (1.0 + (fit.rms_px / (FIT_QUALITY_SCALE * _image_extent_px(
             fit_points, K))) ** 2)
         confidence = detection.presence * quality
