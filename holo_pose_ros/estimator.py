@@ -89,9 +89,9 @@ class Estimator:
     `keypoint_weight_power` in the fit (sharp peaks are far more often right); a weight below
     `min_keypoint_confidence` counts as 0; the `lifter_starts` lifter hypotheses that best explain the keypoints
     start it (`tracked_lifter_starts` on a tracked frame, which starts from the previous frame's fit: by default
-    none, so the lifter does not run there). With `depth_prior`, the depth of the paper heads' estimate (DepthNet) pulls the fitted depth
-    (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too far. The estimate's
-    confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
+    none, so the lifter does not run there). With `depth_prior`, the depth of the paper heads' estimate (DepthNet)
+    pulls the fitted depth (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too
+    far. The estimate's confidence is the presence probability times the fit's quality 1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2),
     extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
     below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
     nothing. With `silhouette` (a network that predicts a robot mask; off unless asked or its card's
