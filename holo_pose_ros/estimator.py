@@ -92,7 +92,8 @@ class Estimator:
     none, so the lifter does not run there). With `depth_prior`, the depth of the paper heads' estimate (DepthNet)
     pulls the fitted depth (config/fitting.yaml): biased 2D detections otherwise make the fit place the robot too
     far. The estimate's confidence is the presence probability times the fit's quality
-    1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2), extent the larger side of the fitted fit keypoints' image bounds (the robot's apparent size, whatever the crop):
+    1 / (1 + (rms / (FIT_QUALITY_SCALE * extent))^2), extent the larger side of the fitted fit keypoints' image
+    bounds (the robot's apparent size, whatever the crop):
     below `min_confidence` it is 'not found', so a fit that explains nothing (no confident keypoint, rms = inf) finds
     nothing. With `silhouette` (a network that predicts a robot mask; off unless asked or its card's
     `estimator.silhouette` says so), the fit also pulls the robot's projected surface into the predicted mask and

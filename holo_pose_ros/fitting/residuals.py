@@ -90,13 +90,13 @@ def mean_depth_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.
     with respect to (dq, dphi, dt), as for the residuals; dP_dq None for a pose-only fit (J = 0). Depth is
     linear in the points, so this is the depth of their centroid."""
     k = P_base.shape[1]
-    centroid = P_base[:, 0] if k == 1 else P_base.sum(axis=1) / k            # (S, 3)
+    centroid = P_base.sum(axis=1) / k                                         # (S, 3)
     rz = R[:, 2, :]                                                           # (S, 3): d z / d P_base
     z = np.sum(rz * centroid, axis=-1) + t[:, 2]
     n = 0 if dP_dq is None else dP_dq.shape[-1]
     jac = np.zeros((len(R), n + 6))
     if dP_dq is not None:
-        d_centroid = dP_dq[:, 0] if k == 1 else dP_dq.sum(axis=1) / k        # (S, 3, J)
+        d_centroid = dP_dq.sum(axis=1) / k                                    # (S, 3, J)
         jac[:, :n] = np.sum(rz[:, :, None] * d_centroid, axis=1)
     # dX/dphi = -R [P]x, as above: the rotation columns are centroid x rz (written out: np.cross costs more here)
     (cx, cy, cz), (ax, ay, az) = centroid.T, rz.T
