@@ -5,7 +5,9 @@ what matters most: the look no training config names (config/generate/unseen.yam
 camera). With `validation.snapshots: true` it also keeps every validated model (runs/<run>/snapshots/); this scores
 each of them, and optionally the shipped model as the bar, through the deployed estimator fitted by parts on the
 first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
-mean ADD AUC over the folders (ties: the earliest). It writes snapshots/choice.json and choice.png (AUC by step,
+mean ADD AUC over the folders (ties: the earliest), or with `--criterion median_add` the lowest median ADD averaged
+over the folders (for a robot whose AUCs are all near 0, e.g. Baxter's today, where the AUC only ranks noise). It
+writes snapshots/choice.json and choice.png (AUC by step,
 one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar)
 already in choice.json with the same weights (sha256), frames, lifter and folders is not scored again, so it can run
 while the run trains; a run started afresh over old snapshots is scored afresh.
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -44,7 +47,8 @@ def score(card_path: Path, lifter, folders: list[str], frames: int | None) -> di
         report, _, _ = evaluate_folder(estimator, DreamReader(folder, robot), limit=frames, depth_diagnostics=False,
                                        progress=False)
         scores[folder] = {"add_auc": report["add_auc"], "add_mean_mm": report["add_mean_mm"],
-                          "n_not_found": report["n_not_found"], "n_frames": report["n_frames"]}
+                          "add_median_mm": report["add_median_mm"], "n_not_found": report["n_not_found"],
+                          "n_frames": report["n_frames"]}
     return scores
 
 
@@ -65,26 +69,49 @@ def scored_before(path: Path, frames: int, lifter: Path, folders: list[str]) -> 
     if (before.get("frames"), before.get("lifter"), before.get("validation")) != (frames, str(lifter), folders):
         return {}
     rows = [*before.get("snapshots", []), *([before["baseline"]] if before.get("baseline") else [])]
-    return {(row["sha256"], row.get("lifter", str(lifter))): row["scores"] for row in rows if "sha256" in row}
+    return {(row["sha256"], row.get("lifter", str(lifter))): row["scores"] for row in rows
+            if "sha256" in row and all("add_median_mm" in s for s in row["scores"].values())}
 
 
-def mean_auc(scores: dict) -> float:
-    """The choice's criterion: the ADD AUC averaged over the validation folders."""
-    return sum(s["add_auc"] for s in scores.values()) / len(scores)
+# criterion name: (what it averages over the folders, higher is better, its words for the plot and the json)
+CRITERIA = {"auc": ("add_auc", True, "mean ADD AUC over the validation folders, fitted by parts"),
+            "median_add": ("add_median_mm", False,
+                           "median ADD (mm) averaged over the validation folders, fitted by parts")}
 
 
-def plot(path: Path, steps: list[int], rows: list[dict], folders: list[str], baseline: dict | None) -> None:
-    """AUC by training step for each folder and their mean; the shipped model's figures dashed."""
+def summary(scores: dict) -> dict:
+    """A model's figures over the folders: mean ADD AUC and mean of the folders' median ADD (mm; NaN where a folder
+    has no estimate)."""
+    medians = [math.nan if s["add_median_mm"] is None else s["add_median_mm"] for s in scores.values()]
+    return {"mean_add_auc": sum(s["add_auc"] for s in scores.values()) / len(scores),
+            "mean_median_add_mm": sum(medians) / len(medians)}
+
+
+def rank(row: dict, criterion: str) -> float:
+    """The criterion's value of a row, oriented so that higher is better (a model that found no robot in a folder,
+    whose median ADD is NaN, ranks last)."""
+    key, higher_better, _ = CRITERIA[criterion]
+    value = row["mean_add_auc"] if key == "add_auc" else row["mean_median_add_mm"]
+    value = value if higher_better else -value
+    return -math.inf if math.isnan(value) else value
+
+
+def plot(path: Path, steps: list[int], rows: list[dict], folders: list[str], baseline: dict | None,
+         criterion: str) -> None:
+    """The criterion's figure (AUC or median ADD) by training step for each folder and their mean; the shipped
+    model's figures dashed."""
+    key = CRITERIA[criterion][0]
+    mean_key = "mean_add_auc" if key == "add_auc" else "mean_median_add_mm"
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     for i, folder in enumerate([*folders, "mean"]):
-        values = [r["mean_add_auc"] if folder == "mean" else r["scores"][folder]["add_auc"] for r in rows]
+        values = [r[mean_key] if folder == "mean" else r["scores"][folder][key] for r in rows]
         line, = ax.plot(steps, values, marker="o", lw=2.2 if folder == "mean" else 1.2, label=Path(folder).name,
                         color="black" if folder == "mean" else f"C{i}")
         if baseline:
-            bar = baseline["mean_add_auc"] if folder == "mean" else baseline["scores"][folder]["add_auc"]
+            bar = baseline[mean_key] if folder == "mean" else baseline["scores"][folder][key]
             ax.axhline(bar, ls="--", lw=1, color=line.get_color())
     ax.set_xlabel("training step")
-    ax.set_ylabel("ADD AUC, fitted by parts")
+    ax.set_ylabel("ADD AUC, fitted by parts" if key == "add_auc" else "median ADD (mm), fitted by parts")
     ax.set_title(f"{path.parent.parent.name}: validated models" + (f" (dashed: shipped `{baseline['card']}`)"
                                                                     if baseline else ""), fontsize=10)
     ax.grid(alpha=0.3)
@@ -103,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--since", type=int, default=0, help="only snapshots from this training step on")
     parser.add_argument("--baseline", default=None, help="a shipped model's name or card, scored as the bar")
     parser.add_argument("--lifter", default=None, help="lifter card (default: the robot's shipped lifter)")
+    parser.add_argument("--criterion", choices=sorted(CRITERIA), default="auc",
+                        help="auc (default): the best mean ADD AUC; median_add: the lowest mean of the folders' "
+                             "median ADD (for a robot whose AUCs are all near 0)")
     args = parser.parse_args(argv)
     folder = Path(args.run) / "snapshots"
     cards = sorted(p for p in folder.glob("step_*.yaml") if int(p.stem.split("_")[1]) >= args.since)
@@ -123,8 +153,9 @@ def main(argv: list[str] | None = None) -> int:
         before = done.get((digest, str(base_lifter)))
         scores = before or score(base_path, load_lifter(base_lifter), args.validation, args.frames)
         baseline = {"card": args.baseline, "sha256": digest, "lifter": str(base_lifter), "scores": scores,
-                    "mean_add_auc": mean_auc(scores)}
-        print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f} "
+                    **summary(scores)}
+        print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f}, median ADD "
+              f"{baseline['mean_median_add_mm']:.0f} mm; "
               + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items())
               + (" (scored before)" if before else ""))
     snapshot_lifter = load_lifter(lifter)  # one lifter for every snapshot: loaded once
@@ -134,19 +165,22 @@ def main(argv: list[str] | None = None) -> int:
         before = done.get((digest, str(lifter)))
         scores = before or score(card, snapshot_lifter, args.validation, args.frames)
         rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "sha256": digest, "scores": scores,
-                     "mean_add_auc": mean_auc(scores)})
-        tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f} "
+                     **summary(scores)})
+        tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f}, median ADD "
+                   f"{rows[-1]['mean_median_add_mm']:.0f} mm; "
                    + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items())
                    + (" (scored before)" if before else ""))
-    chosen = max(rows, key=lambda r: (r["mean_add_auc"], -r["step"]))
-    result = {"criterion": "mean ADD AUC over the validation folders, fitted by parts", "frames": args.frames,
+    chosen = max(rows, key=lambda r: (rank(r, args.criterion), -r["step"]))
+    result = {"criterion": CRITERIA[args.criterion][2], "frames": args.frames,
               "lifter": str(lifter), "validation": args.validation, "baseline": baseline, "snapshots": rows,
               "chosen": chosen["card"],
-              "beats_baseline": None if baseline is None else chosen["mean_add_auc"] > baseline["mean_add_auc"]}
+              "beats_baseline": None if baseline is None else rank(chosen, args.criterion) > rank(baseline,
+                                                                                                  args.criterion)}
     (folder / "choice.json").write_text(json.dumps(result, indent=1))
-    plot(folder / "choice.png", [r["step"] for r in rows], rows, args.validation, baseline)
+    plot(folder / "choice.png", [r["step"] for r in rows], rows, args.validation, baseline, args.criterion)
     verdict = "" if baseline is None else (" - beats the bar" if result["beats_baseline"] else " - does NOT beat the bar")
-    print(f"chosen: {chosen['card']} (mean AUC {chosen['mean_add_auc']:.2f}){verdict}")
+    print(f"chosen: {chosen['card']} (mean AUC {chosen['mean_add_auc']:.2f}, median ADD "
+          f"{chosen['mean_median_add_mm']:.0f} mm){verdict}")
     return 0
 
 

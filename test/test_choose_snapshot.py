@@ -1,7 +1,8 @@
 """scripts/choose_snapshot.py on a run folder whose two snapshots hold the shipped Panda weights: every snapshot
 and the bar (the shipped model) are scored on the same generated frames of two looks, identical weights score
 identically, a tie goes to the earliest step and does not count as beating the bar; a run without snapshots is
-refused with the reason; a second run scores only the weights it has not scored (a new snapshot, one overwritten
+refused with the reason; by median ADD (`--criterion median_add`) the untrained model ranks below; a second run
+scores only the weights it has not scored (a new snapshot, one overwritten
 by a run started afresh), the bar included: scores are keyed by the weights' sha256, not by the snapshot's path."""
 
 from __future__ import annotations
@@ -43,13 +44,16 @@ def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_pa
     small = load_model(small_model_card)[0]
     save_model(small, "panda", tmp_path / "run" / "snapshots" / "step_000750", {})
     again = subprocess.run([sys.executable, SCRIPT, str(tmp_path / "run"), "--baseline", "panda", "--frames", "3",
-                            "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen")],
+                            "--validation", str(tmp_path / "own"), "--validation", str(tmp_path / "unseen"),
+                            "--criterion", "median_add"],
                            capture_output=True, text=True, cwd=ROOT, timeout=600, env=ENV)
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     after = json.loads((tmp_path / "run" / "snapshots" / "choice.json").read_text())
     assert [r["step"] for r in after["snapshots"]] == [250, 500, 750]
     assert after["snapshots"][:2] == choice["snapshots"] and after["baseline"] == choice["baseline"]
     assert after["snapshots"][2]["mean_add_auc"] < choice["snapshots"][0]["mean_add_auc"]  # untrained: far worse
+    assert not after["snapshots"][2]["mean_median_add_mm"] <= choice["snapshots"][0]["mean_median_add_mm"]  # or NaN
+    assert after["criterion"].startswith("median ADD") and choice["criterion"].startswith("mean ADD AUC")
     assert after["chosen"].endswith("step_000250.yaml") and after["beats_baseline"] is False
     bar_line = next(line for line in again.stdout.splitlines() if line.startswith("bar panda"))
     assert bar_line.endswith("(scored before)") and "step_000750: " in again.stdout
