@@ -56,7 +56,7 @@ def test_the_backbone_restyles_the_maps_leaving_the_frozen_blocks_in_training_on
     backbone.eval()
     with torch.no_grad():
         clean, clean_skips = backbone.pyramid(x)
-    backbone.style_noise, backbone.style_noise_after = FeatureStatisticsNoise(1.0), 4   # blocks 0..4: stride 8
+    backbone.style_noise, backbone.style_noise_after = FeatureStatisticsNoise(1.0), (4,)   # blocks 0..4: stride 8
     with torch.no_grad():
         assert torch.equal(backbone.pyramid(x)[0], clean)              # eval mode: never restyled
         if onnx_prefix:
@@ -69,3 +69,37 @@ def test_the_backbone_restyles_the_maps_leaving_the_frozen_blocks_in_training_on
     for skip, before in ((stride8, clean_skips[1]), (stride4, clean_skips[2])):   # from the frozen blocks
         assert skip.shape == before.shape and not torch.allclose(skip, before, atol=1e-2)
     assert not torch.allclose(stride16, clean_skips[0], atol=1e-2)      # computed from the restyled map
+
+
+def test_deeper_blocks_restyle_each_map_once(tmp_path):
+    """With `after_blocks` past the frozen ones, each listed block restyles its output and the skips taken since the
+    last restyle, so every map the decoder reads is restyled exactly once: after block 4 and the stride-16 end,
+    block 4's output (the stride-8 skip) and the stride-4 skip at 4, then the stride-16 end's output; after the
+    stride-16 end alone, all three there (the trunk's map first)."""
+    torch.manual_seed(0)
+    backbone = EfficientNetLite(0, pretrained=True)
+    x = torch.randn(4, 3, 96, 96)
+    backbone.eval()
+    with torch.no_grad():
+        clean, (c16, c8, c4) = backbone.pyramid(x)
+    stride16_end = next(i for i, stride in backbone.skip_ends().items() if stride == 16)
+    calls = []
+
+    def counting(t: torch.Tensor) -> torch.Tensor:
+        calls.append(tuple(t.shape))
+        return FeatureStatisticsNoise(1.0)(t)
+
+    backbone.frozen_prefix = OnnxFrozenPrefix(backbone, 5, 96, tmp_path / "prefix.onnx", threads=1)
+    backbone.train()
+    backbone.net.eval()
+    backbone.style_noise = counting
+    for after, expected in (((4, stride16_end), [c8.shape, c4.shape, c16.shape]),
+                            ((stride16_end,), [c16.shape, c8.shape, c4.shape])):
+        calls.clear()
+        backbone.style_noise_after = after
+        with torch.no_grad():
+            restyled, skips = backbone.pyramid(x)
+        assert calls[0] == tuple(expected[0]) and sorted(calls) == sorted(tuple(e) for e in expected), after
+        assert not torch.allclose(restyled, clean, atol=1e-2)
+        for skip, before in zip(skips, (c16, c8, c4)):
+            assert not torch.allclose(skip, before, atol=1e-2)

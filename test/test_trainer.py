@@ -210,12 +210,20 @@ def test_style_noise_restyles_the_frozen_blocks_output_and_needs_them(tmp_path):
     assert trainer.run().is_file()
     backbone = trainer.net.backbone
     assert backbone.style_noise is not None and backbone.style_noise.probability == 0.5
-    assert backbone.style_noise_after == 2
+    assert backbone.style_noise_after == (2,)
     rows = list(csv.DictReader(open(tmp_path / "noise" / "log.csv")))
     assert rows and all(float(r["loss_loss"]) == float(r["loss_loss"]) for r in rows)  # finite, not NaN
     with pytest.raises(ValueError, match="style_noise needs"):
         Trainer({**tiny_config(tmp_path / "bad"), "style_noise": {"probability": 0.5}}, device="cpu",
                 progress=False)._attach_style_noise()
+    for after in ([1], [2, 99]):   # inside the frozen blocks (their ONNX prefix cannot restyle), past the last
+        with pytest.raises(ValueError, match="after_blocks"):
+            Trainer({**cfg, "out": str(tmp_path / "bad2"), "style_noise": {"probability": 0.5, "after_blocks": after}},
+                    device="cpu", progress=False)._attach_style_noise()
+    deeper = Trainer({**cfg, "out": str(tmp_path / "deeper"), "style_noise": {"after_blocks": [2, 6]}}, device="cpu",
+                     progress=False)
+    deeper._attach_style_noise()
+    assert deeper.net.backbone.style_noise_after == (2, 6)
 
 
 def test_a_run_with_close_up_views_trains_their_2d_terms_only(tmp_path):

@@ -45,9 +45,10 @@ class EfficientNetLite(nn.Module):
         # in training mode only: computes the stem and the first `frozen_prefix.blocks` blocks instead of them
         # (train/frozen_prefix.py, ONNX Runtime on the CPU); not a submodule, so never in the state dict
         self.frozen_prefix = None
-        # in training mode only: a callable that restyles the maps leaving block `style_noise_after` (the frozen
-        # blocks' last; train/style_noise.py), that block's output and the skip maps taken before it
-        self.style_noise, self.style_noise_after = None, -1
+        # in training mode only: a callable that restyles the maps leaving each block of `style_noise_after` (block
+        # indices; the trainer's default is the frozen blocks' last; train/style_noise.py): that block's output and
+        # the skip maps taken since the previous such block
+        self.style_noise, self.style_noise_after = None, ()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.training and self.frozen_prefix is not None:
@@ -62,13 +63,14 @@ class EfficientNetLite(nn.Module):
         """The stride-32 features and the maps at strides 16, 8, 4 (the same computation as `forward`)."""
         net = self.net
         ends, skips, first = self.skip_ends(), {}, 0
+        done: set[int] = set()                               # skip strides already restyled
         if self.training and self.frozen_prefix is not None:
             maps = self.frozen_prefix(x)                     # {block index: output}, the stride ends among them
             first = self.frozen_prefix.blocks
             x = maps[first - 1]
             skips.update({ends[i]: m for i, m in maps.items() if i in ends})
-            if first - 1 == self.style_noise_after:
-                x, skips = self._restyle(x, skips)
+            if first - 1 in self.style_noise_after:
+                x, skips = self._restyle(x, skips, done)
         else:
             x = net._swish(net._bn0(net._conv_stem(x)))
         rate = net._global_params.drop_connect_rate
@@ -76,17 +78,21 @@ class EfficientNetLite(nn.Module):
             x = block(x, drop_connect_rate=rate * i / len(net._blocks) if rate else rate)
             if i in ends:
                 skips[ends[i]] = x
-            if i == self.style_noise_after:
-                x, skips = self._restyle(x, skips)
+            if i in self.style_noise_after:
+                x, skips = self._restyle(x, skips, done)
         return net._swish(net._bn1(net._conv_head(x))), [skips[k] for k in SKIP_STRIDES]
 
-    def _restyle(self, x: torch.Tensor, skips: dict[int, torch.Tensor]) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
-        """`style_noise` on the trunk's current map and on the skip maps taken so far (training mode only; a skip
-        that is the current map stays the same tensor)."""
+    def _restyle(self, x: torch.Tensor, skips: dict[int, torch.Tensor], done: set[int]
+                 ) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
+        """`style_noise` on the trunk's current map and on the skip maps taken since the last restyle, whose strides
+        join `done` (training mode only; a skip that is the current map stays the same tensor; a skip restyled at an
+        earlier block is not restyled again)."""
         if not self.training or self.style_noise is None:
             return x, skips
         restyled = self.style_noise(x)
-        return restyled, {k: restyled if m is x else self.style_noise(m) for k, m in skips.items()}
+        out = {k: m if k in done else restyled if m is x else self.style_noise(m) for k, m in skips.items()}
+        done.update(skips)
+        return restyled, out
 
 
 def _lite_weights_path(variant: int) -> str:

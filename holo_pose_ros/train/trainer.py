@@ -224,16 +224,25 @@ class Trainer:
             self.out / f"frozen_prefix_rank{self.rank}.onnx", threads=torch.get_num_threads())
 
     def _attach_style_noise(self) -> None:
-        """`style_noise: {probability, scale}`: the maps leaving the frozen blocks get their channel statistics
-        redrawn while training (train/style_noise.py), so that the trained layers learn not to lean on them."""
-        noise = FeatureStatisticsNoise.from_config(self.cfg.get("style_noise"))
-        if noise is None:
+        """`style_noise: {probability, scale, after_blocks}`: the maps leaving the frozen blocks (and those leaving
+        each of `after_blocks`, backbone block indices, when given) get their channel statistics redrawn while
+        training (train/style_noise.py), so that the trained layers learn not to lean on them."""
+        if not self.cfg.get("style_noise"):
             return
-        if self.cfg.get("freeze_blocks", 0) <= 0 or not hasattr(self.net.backbone, "style_noise"):
+        cfg = dict(self.cfg["style_noise"])
+        after = cfg.pop("after_blocks", None)
+        noise = FeatureStatisticsNoise.from_config(cfg) or FeatureStatisticsNoise()   # {after_blocks} alone: defaults
+        freeze = self.cfg.get("freeze_blocks", 0)
+        if freeze <= 0 or not hasattr(self.net.backbone, "style_noise"):
             raise ValueError("style_noise needs an EfficientNet-Lite backbone with freeze_blocks > 0: the noise "
                              "restyles the maps that leave the frozen blocks")
+        blocks = len(self.net.backbone.net._blocks)
+        after = [freeze - 1] if after is None else sorted({int(i) for i in after})
+        if not after or after[0] < freeze - 1 or after[-1] >= blocks:
+            raise ValueError(f"style_noise.after_blocks {after}: block indices from the frozen blocks' last "
+                             f"({freeze - 1}) to the backbone's last ({blocks - 1})")
         self.net.backbone.style_noise = noise
-        self.net.backbone.style_noise_after = self.cfg["freeze_blocks"] - 1
+        self.net.backbone.style_noise_after = tuple(after)
 
     def _param_groups(self, stage: dict) -> list[dict]:
         """The trainable parameters in two groups: the heads (first; the logged lr is theirs) and the backbone,
