@@ -166,10 +166,6 @@ class Lifter(nn.Module):
             bias.zero_()
             bias[:, self.n_joints:self.n_joints + 6] = torch.tensor([1.0, 0, 0, 0, 1.0, 0])
 
-    @property
-    def hypotheses_count(self) -> int:
-        return self.cfg.hypotheses
-
     def forward(self, features: torch.Tensor, bf16: bool = False) -> dict[str, torch.Tensor]:
         """Raw outputs of features (B, F): joints_norm (B, H, J, in [-1, 1]), rot6d (B, H, 6), offset o (B, H, 2,
         box half-sides), log_depth s (B, H). `bf16` runs the trunk under CPU bfloat16 autocast (training: ~3x
