@@ -427,15 +427,13 @@ class Estimator:
             if self.silhouette and detection.mask is not None and detection.mask.any():
                 silhouette = self.fitter.silhouette(detection.mask)
             q0, T0 = np.concatenate(q0), np.concatenate(T0)
-            relative = self._relative_depths(detection)
             fitted = self.search(from_previous).fit(detection.uv, weights, K, q0, T0, known_joints,
-                                                    depth_prior_m if use_prior else None, silhouette=silhouette,
-                                                    relative_depths_m=relative)
+                                                    depth_prior_m if use_prior else None, silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             if detection.image_size is not None and self.fitter.config["in_view_margin_px"] >= 0:
                 fitted, evidence["fitted"] = self._in_view_refit(detection, K, weights, fitted, q0, T0, known_joints,
                                                                  depth_prior_m if use_prior else None, silhouette,
-                                                                 timings, relative)
+                                                                 timings)
             poses["fitted"] = (fitted.q, fitted.T_cam_base, fitted)
             if self.static_camera is not None and known_joints is None and static_camera_step:
                 poses["fitted"] = self._static_camera_fit(evidence.get("fitted", detection), K, fitted, ff, tracked,
@@ -456,8 +454,7 @@ class Estimator:
         return results
 
     def _in_view_refit(self, detection: Detection, K: np.ndarray, weights: np.ndarray, fitted, q0: np.ndarray,
-                       T0: np.ndarray, known_joints, depth_prior_m: float | None, silhouette, timings: dict,
-                       relative_depths_m: np.ndarray | None = None) -> tuple:
+                       T0: np.ndarray, known_joints, depth_prior_m: float | None, silhouette, timings: dict) -> tuple:
         """Fit keypoints that the fit puts outside the image, or within the fit config's `in_view_margin_px` of its
         border, are guesses, not evidence: the network never learnt where a point it cannot see goes (trained only
         on points in view, on truncated frames it puts them ~200 px off, many inside the image). They lose their
@@ -473,8 +470,7 @@ class Estimator:
         in_view = dataclasses.replace(detection, confidence=np.where(out, 0.0, detection.confidence))
         refit = self.fitter.fit(in_view.uv, np.where(out, 0.0, weights), K,
                                 np.concatenate([fitted.q[None], q0]), np.concatenate([fitted.T_cam_base[None], T0]),
-                                known_joints, depth_prior_m, silhouette=silhouette,
-                                relative_depths_m=relative_depths_m)
+                                known_joints, depth_prior_m, silhouette=silhouette)
         timings["in_view"] = (time.perf_counter() - t0) * 1e3
         return (refit, in_view) if np.isfinite(refit.cost) else (fitted, detection)
 
@@ -498,13 +494,6 @@ class Estimator:
             result = (refit.q, refit.T_cam_base, refit)
         timings["static_camera"] = (time.perf_counter() - t0) * 1e3
         return result
-
-    @staticmethod
-    def _relative_depths(detection: Detection) -> np.ndarray | None:
-        """(N,) metres: the network's camera depth of each of DREAM's keypoints minus the root keypoint's (its 3D
-        volume), for the fit's relative depth prior (config relative_depth_weight; off at 0)."""
-        dz = detection.out.get("dz") if isinstance(detection.out, dict) else None
-        return None if dz is None else dz[0].double().cpu().numpy()
 
     def search(self, from_previous: bool = False):
         """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced); the

@@ -152,12 +152,11 @@ class PartsFitter:
 
     def fit(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q0: np.ndarray, T0: np.ndarray,
             known_joints: np.ndarray | None = None, depth_prior_m: float | None = None,
-            silhouette: Silhouette | None = None, relative_depths_m: np.ndarray | None = None) -> FitResult:
+            silhouette: Silhouette | None = None) -> FitResult:
         """As Fitter.fit, with the search (the module docstring); with known_joints only the pose is unknown and
-        this is Fitter.fit. `iterations` counts the LM iterations of every fit run. The relative depth prior joins
-        the plain fit and the final one, not the sweep's fits of subsets of the points."""
+        this is Fitter.fit. `iterations` counts the LM iterations of every fit run."""
         fitter, cfg = self.fitter, self.fitter.config
-        kwargs = dict(depth_prior_m=depth_prior_m, silhouette=silhouette, relative_depths_m=relative_depths_m)
+        kwargs = dict(depth_prior_m=depth_prior_m, silhouette=silhouette)
         if known_joints is not None:
             return fitter.fit(uv, weights, K, q0, T0, known_joints, **kwargs)
         uv, w = fitter.observations(uv, weights)

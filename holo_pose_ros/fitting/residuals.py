@@ -105,25 +105,6 @@ def mean_depth_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.
     return z, jac
 
 
-def relative_depths_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.ndarray, rows: np.ndarray,
-                                 root: int) -> tuple[np.ndarray, np.ndarray]:
-    """Camera depths of the points P_base[:, rows] (S, N, 3) minus the point P_base[:, root]'s, through rotations R
-    (S, 3, 3): z (S, N) metres (the translation cancels), and their Jacobian (S, N, J + 6) with respect to (dq, dphi,
-    dt), as for the residuals; dP_dq None for a pose-only fit (J = 0)."""
-    D = P_base[:, rows] - P_base[:, root][:, None]                            # (S, N, 3) base frame
-    rz = R[:, 2, :]                                                           # (S, 3): d z / d P_base
-    z = np.einsum("snc,sc->sn", D, rz)
-    n = 0 if dP_dq is None else dP_dq.shape[-1]
-    jac = np.zeros(z.shape + (n + 6,))
-    if dP_dq is not None:
-        jac[..., :n] = np.einsum("sncj,sc->snj", dP_dq[:, rows] - dP_dq[:, root][:, None], rz)
-    ax, ay, az = rz[:, None, 0], rz[:, None, 1], rz[:, None, 2]
-    jac[..., n] = D[..., 1] * az - D[..., 2] * ay                             # D x rz, as mean_depth_and_jacobian
-    jac[..., n + 1] = D[..., 2] * ax - D[..., 0] * az
-    jac[..., n + 2] = D[..., 0] * ay - D[..., 1] * ax
-    return z, jac
-
-
 def robust_weights(sq_norm: np.ndarray, loss: str, scale_px: float) -> tuple[np.ndarray, np.ndarray]:
     """rho(s) (cost, px^2) and rho'(s) (IRLS weight, 0..1) of squared residual norms s (px^2), elementwise.
 

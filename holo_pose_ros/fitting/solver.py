@@ -37,7 +37,6 @@ from holo_pose_ros.fitting.residuals import (
     ROBUST_LOSSES,
     mean_depth_and_jacobian,
     project,
-    relative_depths_and_jacobian,
     reprojection_residuals,
     reprojection_residuals_and_jacobian,
     robust_weights,
@@ -157,8 +156,6 @@ class _State:
     ch_F: np.ndarray | None = None
     ch_H: np.ndarray | None = None
     ch_g: np.ndarray | None = None
-    rel_e: np.ndarray | None = None       # (S, N) relative depths of DREAM's keypoints minus the network's, metres
-    rel_jac: np.ndarray | None = None     # (S, N, P) their Jacobian
 
     def where(self, take: np.ndarray, other: "_State") -> "_State":
         """Per start: `other`'s values where take (S,) is True, else this state's."""
@@ -200,8 +197,6 @@ class Fitter:
         # fit points whose mean depth the depth prior holds: the root keypoint (a DREAM keypoint, so fit point
         # root_index) or all of them
         self.depth_points = np.array([robot.root_index]) if on == "root" else np.arange(self.tree.n_points)
-        # the relative depth prior's points: DREAM's keypoints (the first fit points) about the root keypoint
-        self.relative_points, self.relative_root = np.arange(robot.n_keypoints), int(robot.root_index)
 
     def restricted_to(self, points: np.ndarray) -> "Fitter":
         """This Fitter over the fit points at indices `points` only (M' of them: uv and weights then have M' rows),
@@ -215,7 +210,6 @@ class Fitter:
         restricted.tree = self.tree.restricted_to(idx)
         restricted.depth_points = np.array([where[int(m)] for m in self.depth_points])
         restricted.surface_tree, restricted.surface_normals = None, None
-        restricted.relative_points = None                 # a subset of points: no relative depth prior
         return restricted
 
     # -- inputs ---------------------------------------------------------------------------------------------
@@ -340,18 +334,13 @@ class Fitter:
     # -- fit ------------------------------------------------------------------------------------------------
     def fit(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q0: np.ndarray, T0: np.ndarray,
             known_joints: np.ndarray | None = None, depth_prior_m: float | None = None,
-            silhouette: Silhouette | None = None, base_prior: BasePrior | None = None,
-            relative_depths_m: np.ndarray | None = None) -> FitResult:
+            silhouette: Silhouette | None = None, base_prior: BasePrior | None = None) -> FitResult:
         """Fit to fit keypoints uv (M, 2) px with weights (M,) >= 0 seen through K (3, 3), from starts q0 (S, J)
         and T0 (S, 4, 4) (T_cam<-base); with known_joints (J,) q is held there and only the pose is fitted. With
         depth_prior_m, the depth of `depth_points` (config depth_prior_on: the root keypoint or all fit points) is
         pulled towards it (metres; e.g. a depth network's). With base_prior the base pose is pulled towards its
         T_cam_base (config base_prior_weight at one sigma, robust beyond base_prior_robust_sigmas; its cost also
-        counts in the choice of the winning start). With relative_depths_m (N,) (metres, each of DREAM's N
-        keypoints' camera depth minus the root keypoint's, e.g. the network's 3D volume) and config
-        relative_depth_weight > 0, the fitted keypoints' relative depths are pulled towards them (robust at
-        relative_depth_robust_sigmas; counted in the choice of the winning start with relative_depth_in_choice).
-        With a silhouette (Fitter.silhouette(mask); needs meshes at
+        counts in the choice of the winning start). With a silhouette (Fitter.silhouette(mask); needs meshes at
         construction) its terms join the keypoints' at every iteration and in the choice of the winning start,
         and the fit runs even without usable keypoints."""
         cfg = self.config
@@ -383,31 +372,6 @@ class Fitter:
                              best, np.full(S, np.inf), 0, n_points, None, q.copy(), T_starts)
 
         min_depth, loss, scale = cfg["min_depth_m"], cfg["robust_loss"], cfg["robust_scale_px"]
-        relative = relative_depths_m is not None and float(cfg["relative_depth_weight"]) > 0
-        if relative:
-            if self.relative_points is None:
-                raise ValueError("a restricted Fitter has no relative depth prior")
-            rel_obs = np.asarray(relative_depths_m, float).reshape(-1)
-            if len(rel_obs) != len(self.relative_points) or not np.isfinite(rel_obs).all():
-                raise ValueError(f"relative_depths_m: expected {len(self.relative_points)} finite depths (m)")
-            rel_sigma = float(cfg["relative_depth_sigma_m"])
-            rel_unit = W * float(cfg["relative_depth_weight"])                  # px^2 at one sigma
-            rel_scale = float(cfg["relative_depth_robust_sigmas"])
-            rel_rows = self.relative_points[self.relative_points != self.relative_root]
-
-        def relative_terms(P: np.ndarray, dP: np.ndarray | None, R: np.ndarray) -> tuple:
-            """(rel_e, rel_jac): residuals.relative_depths_and_jacobian minus the observed; () without the prior."""
-            if not relative:
-                return ()
-            z, jac = relative_depths_and_jacobian(P, dP, R, rel_rows, self.relative_root)
-            return z - rel_obs[rel_rows], jac
-
-        def relative_cost(state: _State) -> np.ndarray | float:
-            """(S,) the relative depth prior's robust (Cauchy) cost, px^2; 0 without it."""
-            if not relative:
-                return 0.0
-            d2 = (state.rel_e / rel_sigma) ** 2
-            return rel_unit * rel_scale ** 2 * np.log1p(d2 / rel_scale ** 2).sum(-1)
 
         def linearize(q: np.ndarray, R: np.ndarray, t: np.ndarray) -> _State:
             """Residuals, Jacobian and robust terms at (q, R, t)."""
@@ -425,10 +389,8 @@ class Fitter:
                     Ns = self.surface_tree.directions(T_bodies, self.surface_normals)
                     Ps, dPs = self.surface_tree.points_and_jacobian_at(T_bodies)
                 sil = self._silhouette_terms(silhouette, K, Ps, Ns, dPs, R, t)
-            rel = relative_terms(P, dP, R)
             return _State(q, R, t, r, jac, sq, rho, drho,
-                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t), *sil,
-                          **({"rel_e": rel[0], "rel_jac": rel[1]} if rel else {}))
+                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t), *sil)
 
         def data_cost(state: _State) -> np.ndarray:
             """(S,) the keypoints' robust cost at all weights plus the silhouette terms (the chamfer at its final
@@ -470,7 +432,7 @@ class Fitter:
         def prior_cost(state: _State) -> np.ndarray:
             joints = 0.0 if pose_only else ((state.q - q_start) ** 2) @ prior
             return joints + (0.0 if depth_prior_m is None else depth_precision * (state.z - depth_prior_m) ** 2) \
-                + base_cost(state) + relative_cost(state)
+                + base_cost(state)
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
         state = linearize(q, R, t)
@@ -491,10 +453,6 @@ class Fitter:
             if depth_prior_m is not None:
                 H += depth_precision * state.jz[:, :, None] * state.jz[:, None, :]
                 g += depth_precision * state.jz * (state.z - depth_prior_m)[:, None]
-            if relative:  # IRLS of the Cauchy
-                down = rel_unit / rel_sigma ** 2 / (1.0 + (state.rel_e / rel_sigma) ** 2 / rel_scale ** 2)
-                H += np.einsum("sn,sni,snj->sij", down, state.rel_jac, state.rel_jac)
-                g += np.einsum("sn,sni->si", down * state.rel_e, state.rel_jac)
             if base_prior is not None:  # IRLS of the Cauchy; the rotation's Jacobian taken as the identity
                 d2, e_r, e_t = base_sigmas2(state)
                 down = (1.0 / (1.0 + d2 / base_scale2))[:, None]
@@ -537,10 +495,7 @@ class Fitter:
         back = end + end_base > begin + begin_base
         state = state.where(back, start_state)
         costs = np.where(back, begin, end) / W_all
-        choice = np.where(back, begin_base, end_base) / W_all
-        if relative and cfg["relative_depth_in_choice"]:
-            choice = choice + relative_cost(state) / W_all          # state holds the start where it went back
-        best = int(np.argmin(costs + choice))
+        best = int(np.argmin(costs + np.where(back, begin_base, end_base) / W_all))
         silhouette_cost = None if silhouette is None else float((data_cost(state) - state.rho @ w)[best] / W_sil)
         T_starts = self._matrices(state.R, state.t)
         return FitResult(state.q[best].copy(), T_starts[best], float(costs[best]),
