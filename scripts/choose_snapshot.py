@@ -7,8 +7,8 @@ each of them, and optionally the shipped model as the bar, through the deployed 
 first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
 mean ADD AUC over the folders (ties: the earliest), or with `--criterion median_add` the lowest median ADD averaged
 over the folders (for a robot whose AUCs are all near 0, e.g. Baxter's today, where the AUC only ranks noise). It
-writes snapshots/choice.json and choice.png (AUC by step,
-one line per folder, the bar dashed) and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar)
+writes snapshots/choice.json and choice.png (the criterion's figure by step, one line per folder, the bar dashed)
+and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar)
 already in choice.json with the same weights (sha256), frames, lifter and folders is not scored again, so it can run
 while the run trains; a run started afresh over old snapshots is scored afresh.
 
