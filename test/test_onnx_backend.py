@@ -47,7 +47,10 @@ def test_shipped_model_estimates_agree_across_backends(frames):
     """Both backends find the same 2D evidence, but for a heatmap whose two best peaks nearly tie (the arg-max may
     flip on a 1e-4 difference), and give the same estimate wherever their evidence agrees. 'The same' is within
     0.1 px: the pyramid224 head's sub-pixel decoding moves a keypoint by up to 0.07 px on the backends' 1e-4
-    differences of the logits (the shipped Panda, 5 December 2026; a broken export moves them by pixels)."""
+    differences of the logits (the shipped Panda, 5 December 2026; a broken export moves them by pixels). The
+    evidence is the keypoints the fit weighs: since Panda run 11 the heatmaps of points the network cannot place are
+    trained flat, and their arg-max wanders between the backends (up to 42 px) at a confidence whose fit weight is
+    0."""
     torch_estimator = Estimator.from_model("panda")
     ort_estimator = Estimator.from_model("panda", backend="onnxruntime")
     assert ort_estimator.backend == "onnxruntime"
@@ -60,7 +63,9 @@ def test_shipped_model_estimates_agree_across_backends(frames):
         if da is None:
             continue
         moved = np.linalg.norm(da.uv - db.uv, axis=1) > 0.1
-        assert moved.mean() <= 0.02, f"{frame.name}: {moved.sum()} of {len(moved)} keypoints differ"
+        weighed = (torch_estimator.fit_weights(da.confidence) > 0) | (ort_estimator.fit_weights(db.confidence) > 0)
+        assert (moved & weighed).sum() <= 0.02 * len(moved), \
+            f"{frame.name}: {(moved & weighed).sum()} of {weighed.sum()} weighed keypoints differ"
         a = torch_estimator.estimate_detection(da, frame.K, methods=("fitted",))["fitted"]
         b = ort_estimator.estimate_detection(db, frame.K, methods=("fitted",))["fitted"]
         torch_estimator.reset()
