@@ -73,9 +73,10 @@ def scored_before(path: Path, frames: int, lifter: Path, folders: list[str]) -> 
             if "sha256" in row and all("add_median_mm" in s for s in row["scores"].values())}
 
 
-# criterion name: (what it averages over the folders, higher is better, its words for the plot and the json)
-CRITERIA = {"auc": ("add_auc", True, "mean ADD AUC over the validation folders, fitted by parts"),
-            "median_add": ("add_median_mm", False,
+# criterion name: (the folder figure it averages, the row's key of that average, higher is better, its words for
+# the json)
+CRITERIA = {"auc": ("add_auc", "mean_add_auc", True, "mean ADD AUC over the validation folders, fitted by parts"),
+            "median_add": ("add_median_mm", "mean_median_add_mm", False,
                            "median ADD (mm) averaged over the validation folders, fitted by parts")}
 
 
@@ -90,9 +91,8 @@ def summary(scores: dict) -> dict:
 def rank(row: dict, criterion: str) -> float:
     """The criterion's value of a row, oriented so that higher is better (a model that found no robot in a folder,
     whose median ADD is NaN, ranks last)."""
-    key, higher_better, _ = CRITERIA[criterion]
-    value = row["mean_add_auc"] if key == "add_auc" else row["mean_median_add_mm"]
-    value = value if higher_better else -value
+    _, mean_key, higher_better, _ = CRITERIA[criterion]
+    value = row[mean_key] if higher_better else -row[mean_key]
     return -math.inf if math.isnan(value) else value
 
 
@@ -100,8 +100,7 @@ def plot(path: Path, steps: list[int], rows: list[dict], folders: list[str], bas
          criterion: str) -> None:
     """The criterion's figure (AUC or median ADD) by training step for each folder and their mean; the shipped
     model's figures dashed."""
-    key = CRITERIA[criterion][0]
-    mean_key = "mean_add_auc" if key == "add_auc" else "mean_median_add_mm"
+    key, mean_key, _, _ = CRITERIA[criterion]
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     for i, folder in enumerate([*folders, "mean"]):
         values = [r[mean_key] if folder == "mean" else r["scores"][folder][key] for r in rows]
@@ -171,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
                    + " ".join(f"{Path(f).name} {s['add_auc']:.1f}" for f, s in scores.items())
                    + (" (scored before)" if before else ""))
     chosen = max(rows, key=lambda r: (rank(r, args.criterion), -r["step"]))
-    result = {"criterion": CRITERIA[args.criterion][2], "frames": args.frames,
+    result = {"criterion": CRITERIA[args.criterion][3], "frames": args.frames,
               "lifter": str(lifter), "validation": args.validation, "baseline": baseline, "snapshots": rows,
               "chosen": chosen["card"],
               "beats_baseline": None if baseline is None else rank(chosen, args.criterion) > rank(baseline,
