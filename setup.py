@@ -32,6 +32,7 @@ setup(
     install_requires=[
         "setuptools",
         "numpy",
+        "numba>=0.60",          # the kinematic fit's inner step, compiled (fitting/compiled.py)
         "pyyaml",
         "torch>=2.2",
         "pytorch-kinematics>=0.10",

@@ -109,6 +109,11 @@ class KinematicTree:
         self.point_joints = (np.abs(self._coef[:, 0, :]).T @ self._to_joint) > 0   # (M, J) bool: joints moving a point
         self._local_h = np.concatenate([point_local, np.ones((self.n_points, 1))], axis=1).T.copy()  # (4, M)
         self._point_index = np.arange(self.n_points)
+        # the same tree as the compiled linearization (fitting/compiled.py) takes it: contiguous, fixed dtypes
+        f64, i64 = (lambda a: np.ascontiguousarray(a, np.float64)), (lambda a: np.ascontiguousarray(a, np.int64))
+        self.compiled_arrays = (i64(parent), f64(self._C), f64(self._CK), f64(self._CKK), f64(self._Ca), i64(source),
+                                f64(gain), f64(bias), f64(axis), np.ascontiguousarray(prismatic, np.bool_),
+                                i64(point_body), f64(point_local), int(n_joints))
 
     # -- construction ---------------------------------------------------------------------------------------
     @classmethod

@@ -27,7 +27,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from holo_pose_ros.fitting.kinematic_tree import KinematicTree
-from holo_pose_ros.fitting.residuals import reprojection_residuals, robust_weights
 from holo_pose_ros.fitting.silhouette import Silhouette
 from holo_pose_ros.fitting.solver import FitResult, Fitter
 
@@ -102,13 +101,9 @@ class PartsFitter:
         """(S, M) each fit point's weighted robust reprojection cost (px^2) at poses q (S, J), T (S, 4, 4), the
         robust loss at `scale_px` (default: the fit's robust_scale_px); the points of `fitter` (default: the whole
         robot's; a sweep step's restricted one)."""
-        cfg = self.fitter.config
         T = np.asarray(T_cam_base, float).reshape(-1, 4, 4)
-        tree = (fitter or self.fitter).tree
-        r = reprojection_residuals(tree.points(q), T[:, :3, :3], T[:, :3, 3], np.asarray(K, float),
-                                   np.asarray(uv, float), cfg["min_depth_m"])
-        rho, _ = robust_weights(np.sum(r * r, axis=-1), cfg["robust_loss"],
-                                cfg["robust_scale_px"] if scale_px is None else scale_px)
+        rho, _ = (fitter or self.fitter).point_costs(uv, K, np.asarray(q, float).reshape(len(T), -1), T[:, :3, :3],
+                                                     T[:, :3, 3], scale_px)
         return rho * np.asarray(weights, float)
 
     def combine(self, uv: np.ndarray, weights: np.ndarray, K: np.ndarray, q: np.ndarray, T_cam_base: np.ndarray,

@@ -45,13 +45,6 @@ def project(X_cam: np.ndarray, K: np.ndarray, min_depth_m: float) -> np.ndarray:
     return np.stack((K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]), axis=-1)
 
 
-def reprojection_residuals(P_base: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, uv: np.ndarray,
-                           min_depth_m: float) -> np.ndarray:
-    """(S, M, 2) projected minus observed pixels for base-frame points P (S, M, 3), poses (R (S,3,3), t (S,3))
-    and observations uv (M, 2) px."""
-    return project(transform_points(P_base, R, t), K, min_depth_m) - uv
-
-
 def reprojection_residuals_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.ndarray, t: np.ndarray,
                                         K: np.ndarray, uv: np.ndarray, min_depth_m: float
                                         ) -> tuple[np.ndarray, np.ndarray]:
@@ -82,27 +75,6 @@ def reprojection_residuals_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | 
     jac[..., n + 1] = Pz * ax - Px * az
     jac[..., n + 2] = Px * ay - Py * ax
     return r, jac
-
-
-def mean_depth_and_jacobian(P_base: np.ndarray, dP_dq: np.ndarray | None, R: np.ndarray, t: np.ndarray
-                             ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean camera depth z (S,) of the points P_base (S, M, 3) through (R, t), metres, and its Jacobian (S, J + 6)
-    with respect to (dq, dphi, dt), as for the residuals; dP_dq None for a pose-only fit (J = 0). Depth is
-    linear in the points, so this is the depth of their centroid."""
-    k = P_base.shape[1]
-    centroid = P_base.sum(axis=1) / k                                         # (S, 3)
-    rz = R[:, 2, :]                                                           # (S, 3): d z / d P_base
-    z = np.sum(rz * centroid, axis=-1) + t[:, 2]
-    n = 0 if dP_dq is None else dP_dq.shape[-1]
-    jac = np.zeros((len(R), n + 6))
-    if dP_dq is not None:
-        d_centroid = dP_dq.sum(axis=1) / k                                    # (S, 3, J)
-        jac[:, :n] = np.sum(rz[:, :, None] * d_centroid, axis=1)
-    # dX/dphi = -R [P]x, as above: the rotation columns are centroid x rz (written out: np.cross costs more here)
-    (cx, cy, cz), (ax, ay, az) = centroid.T, rz.T
-    jac[:, n], jac[:, n + 1], jac[:, n + 2] = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
-    jac[:, n + 5] = 1.0
-    return z, jac
 
 
 def robust_weights(sq_norm: np.ndarray, loss: str, scale_px: float) -> tuple[np.ndarray, np.ndarray]:

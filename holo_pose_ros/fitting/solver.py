@@ -32,12 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
+from holo_pose_ros.fitting import compiled
 from holo_pose_ros.fitting.kinematic_tree import KinematicTree
 from holo_pose_ros.fitting.residuals import (
     ROBUST_LOSSES,
-    mean_depth_and_jacobian,
     project,
-    reprojection_residuals,
     reprojection_residuals_and_jacobian,
     robust_weights,
     so3_exp,
@@ -111,17 +110,10 @@ def normal_equations(r: np.ndarray, jac: np.ndarray, omega: np.ndarray) -> tuple
 def damped_step(H: np.ndarray, g: np.ndarray, damping: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
     """LM steps dx (S, P) solving (H + damping diag(H)) dx = -g per start, for normal matrices H (S, P, P),
     gradients g (S, P) and dampings (S,); parameters where `fixed` (S, P) is True get dx = 0. A floor on the
-    diagonal keeps parameters that nothing observes from making the system singular."""
-    P = g.shape[1]
-    diag = np.diagonal(H, axis1=1, axis2=2)
-    floor = 1e-9 * np.maximum(diag.max(axis=1, keepdims=True), 1e-12)
-    A = H + np.eye(P) * (damping[:, None] * np.maximum(diag, floor))[:, None, :]
-    b = -g
-    if fixed is not None and fixed.any():
-        keep = ~fixed
-        A = A * (keep[:, :, None] & keep[:, None, :]) + np.eye(P) * fixed[:, None, :]
-        b = b * keep
-    return np.linalg.solve(A, b[..., None])[..., 0]
+    diagonal keeps parameters that nothing observes from making the system singular (compiled.damped_steps)."""
+    fixed = np.zeros(g.shape, bool) if fixed is None else np.ascontiguousarray(fixed, bool)
+    return compiled.damped_steps(np.ascontiguousarray(H, np.float64), np.ascontiguousarray(g, np.float64),
+                                 np.ascontiguousarray(damping, np.float64), fixed)
 
 
 def _project_rotation(R: np.ndarray) -> np.ndarray:
@@ -134,17 +126,19 @@ def _project_rotation(R: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _State:
-    """Every start's parameters (q (S, J), R (S, 3, 3), t (S, 3)) and per-point terms there: residuals r (S, M, 2)
-    px, their Jacobian (S, M, 2, P), squared norms sq, robust costs rho and IRLS weights drho (S, M); the mean
-    camera depth z (S,) of the depth prior's points, metres, and its Jacobian jz (S, P); with a silhouette the
+    """Every start's parameters (q (S, J), R (S, 3, 3), t (S, 3)) and the keypoints' terms there: the IRLS normal
+    equations H (S, P, P), g (S, P) at the point weights it was linearized with (`weights`, (M,)), squared residual
+    norms sq (px^2), robust costs rho and IRLS weights drho (S, M); the mean camera depth z (S,) of the depth
+    prior's points, metres, and its Jacobian jz (S, P); with a silhouette the
     weighted robust cost (S,) px^2 and normal equations (S, P, P), (S, P) of its pull-in and contour terms (sil_F,
     sil_H, sil_g) and of its chamfer term at unit weight (ch_F, ch_H, ch_g), else None."""
 
     q: np.ndarray
     R: np.ndarray
     t: np.ndarray
-    r: np.ndarray
-    jac: np.ndarray
+    weights: np.ndarray
+    H: np.ndarray
+    g: np.ndarray
     sq: np.ndarray
     rho: np.ndarray
     drho: np.ndarray
@@ -163,8 +157,8 @@ class _State:
             return other
         if not take.any():
             return self
-        return _State(*(a if a is None else np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
-                        for a, b in ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self))))
+        return _State(*(a if a is None or f.name == "weights" else np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+                        for f, a, b in ((f, getattr(self, f.name), getattr(other, f.name)) for f in fields(self))))
 
 
 class Fitter:
@@ -284,10 +278,19 @@ class Fitter:
     def _data_terms(self, uv: np.ndarray, w: np.ndarray, K: np.ndarray, q: np.ndarray, R: np.ndarray,
                     t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """sum w rho(|r|^2) (S,) and sum w |r|^2 (S,), px^2, at poses (q, R, t) without derivatives."""
-        r = reprojection_residuals(self.tree.points(q), R, t, K, uv, self.config["min_depth_m"])
-        s = np.sum(r * r, axis=-1)
-        rho, _ = robust_weights(s, self.config["robust_loss"], self.config["robust_scale_px"])
+        rho, s = self.point_costs(uv, K, q, R, t)
         return rho @ w, s @ w
+
+    def point_costs(self, uv: np.ndarray, K: np.ndarray, q: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    scale_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Each fit point's robust cost rho(|r|^2) and squared reprojection error |r|^2 (S, M), px^2, unweighted, at
+        poses (q (S, J), R (S, 3, 3), t (S, 3)); the robust loss at scale_px (default robust_scale_px). Compiled."""
+        cfg = self.config
+        c = np.ascontiguousarray
+        return compiled.point_costs(c(q, np.float64), c(R, np.float64), c(t, np.float64), *self.tree.compiled_arrays,
+                                    c(K, np.float64), c(uv, np.float64), compiled.LOSS_CODES[cfg["robust_loss"]],
+                                    float(cfg["robust_scale_px"] if scale_px is None else scale_px),
+                                    float(cfg["min_depth_m"]))
 
     def _require_surface(self) -> None:
         """An error when the Fitter was built without meshes, so has no surface points to fit a silhouette with."""
@@ -371,15 +374,18 @@ class Fitter:
             return FitResult(q[best].copy(), T_starts[best], float("inf"), self._rms(sq[best] / max(W, 1e-300), W),
                              best, np.full(S, np.inf), 0, n_points, None, q.copy(), T_starts)
 
-        min_depth, loss, scale = cfg["min_depth_m"], cfg["robust_loss"], cfg["robust_scale_px"]
+        min_depth, loss, scale = cfg["min_depth_m"], compiled.LOSS_CODES[cfg["robust_loss"]], cfg["robust_scale_px"]
+        P_fixed = np.ascontiguousarray(P_known) if pose_only else np.zeros((1, 1, 3))
+        uv_c, depth_points = np.ascontiguousarray(uv), np.ascontiguousarray(self.depth_points, np.int64)
 
-        def linearize(q: np.ndarray, R: np.ndarray, t: np.ndarray) -> _State:
-            """Residuals, Jacobian and robust terms at (q, R, t)."""
-            P, dP = (P_known, None) if pose_only else self.tree.points_and_jacobian(q)
-            r, jac = reprojection_residuals_and_jacobian(P, dP, R, t, K, uv, min_depth)
-            sq = np.sum(r * r, axis=-1)
-            rho, drho = robust_weights(sq, loss, scale)
-            k = self.depth_points
+        def linearize(q: np.ndarray, R: np.ndarray, t: np.ndarray, weights: np.ndarray) -> _State:
+            """The normal equations (points weighing `weights` (M,) times their IRLS weights) and robust terms at
+            (q, R, t), compiled (fitting/compiled.py)."""
+            terms = compiled.linearize(np.ascontiguousarray(q, np.float64), np.ascontiguousarray(R, np.float64),
+                                       np.ascontiguousarray(t, np.float64), P_fixed, pose_only,
+                                       *self.tree.compiled_arrays, K, uv_c, weights, loss, scale, min_depth,
+                                       depth_points)
+            sq, rho, drho, H, g, z, jz = terms
             sil = ()
             if silhouette is not None:
                 if pose_only:
@@ -389,8 +395,7 @@ class Fitter:
                     Ns = self.surface_tree.directions(T_bodies, self.surface_normals)
                     Ps, dPs = self.surface_tree.points_and_jacobian_at(T_bodies)
                 sil = self._silhouette_terms(silhouette, K, Ps, Ns, dPs, R, t)
-            return _State(q, R, t, r, jac, sq, rho, drho,
-                          *mean_depth_and_jacobian(P[:, k], None if dP is None else dP[:, k], R, t), *sil)
+            return _State(q, R, t, weights, H, g, sq, rho, drho, z, jz, *sil)
 
         def data_cost(state: _State) -> np.ndarray:
             """(S,) the keypoints' robust cost at all weights plus the silhouette terms (the chamfer at its final
@@ -435,7 +440,7 @@ class Fitter:
                 + base_cost(state)
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
-        state = linearize(q, R, t)
+        state = linearize(q, R, t, stages[0] if stages else w)
         start_state = state
         damping = np.full(S, float(cfg["damping_init"]))
         converged = np.zeros(S, bool)
@@ -443,7 +448,9 @@ class Fitter:
         for iterations in range(1, int(cfg["iterations"]) + 1):
             final = iterations > len(stages)
             wk = w if final else stages[iterations - 1]
-            H, g = normal_equations(state.r, state.jac, wk * state.drho)
+            if state.weights is not wk:                                        # a new chain-growing stage
+                state = linearize(state.q, state.R, state.t, wk)
+            H, g = state.H.copy(), state.g.copy()
             F = state.rho @ wk + prior_cost(state)
             if silhouette is not None:
                 wc = chamfer_weight(iterations)
@@ -472,7 +479,7 @@ class Fitter:
                     fixed[:, :J] = out
             dx = damped_step(H, g, damping, fixed)
             q_c = state.q if pose_only else np.clip(state.q + dx[:, :J], self.lower, self.upper)
-            cand = linearize(q_c, state.R @ so3_exp(dx[:, nq:nq + 3]), state.t + dx[:, nq + 3:])
+            cand = linearize(q_c, state.R @ so3_exp(dx[:, nq:nq + 3]), state.t + dx[:, nq + 3:], wk)
             F_c = cand.rho @ wk + prior_cost(cand)
             if silhouette is not None:
                 F_c += cand.sil_F + wc * cand.ch_F

@@ -1,0 +1,251 @@
+"""The fit's inner step compiled with numba: forward kinematics of the fit keypoints, their reprojection residuals,
+robust weights and the IRLS Gauss-Newton normal equations of every start in one pass. Pixels, metres, radians.
+
+Why: the search by parts linearizes about 40 times a frame on a few starts and ~100 points; in numpy each
+linearization is some 30 array operations on small arrays (0.3 ms, mostly call overhead) and builds the whole
+(S, M, 2, J + 6) Jacobian only to contract it. Compiled, a point's Jacobian rows live in registers and go straight
+into H and g. The numpy functions (kinematic_tree.py, residuals.py, solver.normal_equations) stay the reference the
+tests compare with, and serve the silhouette terms.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+LOSS_CODES = {"squared": 0, "huber": 1, "cauchy": 2}
+
+
+@njit(cache=True, nogil=True)
+def _robust(s: float, loss: int, scale: float) -> tuple[float, float]:
+    """rho(s), rho'(s) of a squared residual norm s (px^2): residuals.robust_weights for one value."""
+    if loss == 0:
+        return s, 1.0
+    c2 = scale * scale
+    if loss == 1:
+        if s <= c2:
+            return s, 1.0
+        norm = math.sqrt(s)
+        return 2.0 * scale * norm - c2, scale / max(norm, 1e-300)
+    return c2 * math.log1p(s / c2), 1.0 / (1.0 + s / c2)
+
+
+@njit(cache=True, nogil=True)
+def _body_poses(q: np.ndarray, parent: np.ndarray, C: np.ndarray, CK: np.ndarray, CKK: np.ndarray, Ca: np.ndarray,
+                source: np.ndarray, gain: np.ndarray, bias: np.ndarray, T: np.ndarray) -> None:
+    """T (B, 4, 4) <- every body's pose T_base<-body at joints q (J,), as KinematicTree.body_poses (bodies come
+    after their parents; C, CK, CKK, Ca are the tree's per-moving-body pieces, index b - 1)."""
+    B = parent.shape[0]
+    for i in range(4):
+        for j in range(4):
+            T[0, i, j] = 1.0 if i == j else 0.0
+    for b in range(1, B):
+        theta = q[source[b]] * gain[b] + bias[b]
+        s, c = math.sin(theta), 1.0 - math.cos(theta)
+        p = parent[b]
+        for i in range(4):
+            for j in range(4):
+                acc = 0.0
+                for k in range(4):
+                    L = C[b - 1, k, j] + s * CK[b - 1, k, j] + c * CKK[b - 1, k, j] + theta * Ca[b - 1, k, j]
+                    acc += T[p, i, k] * L
+                T[b, i, j] = acc
+
+
+@njit(cache=True, nogil=True)
+def linearize(q: np.ndarray, R: np.ndarray, t: np.ndarray, P_known: np.ndarray, pose_only: bool,
+              parent: np.ndarray, C: np.ndarray, CK: np.ndarray, CKK: np.ndarray, Ca: np.ndarray, source: np.ndarray,
+              gain: np.ndarray, bias: np.ndarray, axis: np.ndarray, prismatic: np.ndarray, point_body: np.ndarray,
+              point_local: np.ndarray, n_joints: int, K: np.ndarray, uv: np.ndarray, weights: np.ndarray, loss: int,
+              scale: float, min_depth: float, depth_points: np.ndarray):
+    """At every start s (q (S, J), R (S, 3, 3), t (S, 3); with pose_only the points are P_known (S, M, 3) and
+    only the pose is a parameter): the squared residual norms sq, robust costs rho and IRLS weights drho (S, M);
+    the normal equations H (S, P, P) and g (S, P) of the parameters (dq, dphi, dt) (residuals.py's conventions,
+    P = J + 6, or 6) weighing point m by weights[m] * drho; the depth prior's points' mean camera depth z (S,)
+    and its gradient jz (S, P)."""
+    S, M = R.shape[0], point_body.shape[0]
+    nq = 0 if pose_only else n_joints
+    P = nq + 6
+    sq, rho, drho = np.empty((S, M)), np.empty((S, M)), np.empty((S, M))
+    H, g = np.zeros((S, P, P)), np.zeros((S, P))
+    z, jz = np.zeros(S), np.zeros((S, P))
+    B = parent.shape[0]
+    T = np.empty((B, 4, 4))
+    omega_axis = np.empty((B, 3))            # each body's joint axis in the base frame
+    Pm, dP, AR, row = np.empty(3), np.zeros((3, max(nq, 1))), np.empty((2, 3)), np.empty((2, P))
+    depth_mask = np.zeros(M, np.bool_)
+    for k in depth_points:
+        depth_mask[k] = True
+    n_depth = depth_points.shape[0]
+    fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    for s in range(S):
+        if not pose_only:
+            _body_poses(q[s], parent, C, CK, CKK, Ca, source, gain, bias, T)
+            for b in range(1, B):
+                for i in range(3):
+                    omega_axis[b, i] = T[b, i, 0] * axis[b, 0] + T[b, i, 1] * axis[b, 1] + T[b, i, 2] * axis[b, 2]
+        centroid = np.zeros(3)
+        dcentroid = np.zeros((3, max(nq, 1)))
+        for m in range(M):
+            if pose_only:
+                for i in range(3):
+                    Pm[i] = P_known[s, m, i]
+            else:
+                bm = point_body[m]
+                for i in range(3):
+                    Pm[i] = (T[bm, i, 0] * point_local[m, 0] + T[bm, i, 1] * point_local[m, 1]
+                             + T[bm, i, 2] * point_local[m, 2] + T[bm, i, 3])
+                dP[:, :] = 0.0
+                b = bm
+                while b > 0:                      # every joint on the point's path to the base moves it
+                    j, a = source[b], omega_axis[b]
+                    if prismatic[b]:
+                        for i in range(3):
+                            dP[i, j] += gain[b] * a[i]
+                    else:
+                        d0, d1, d2 = Pm[0] - T[b, 0, 3], Pm[1] - T[b, 1, 3], Pm[2] - T[b, 2, 3]
+                        dP[0, j] += gain[b] * (a[1] * d2 - a[2] * d1)
+                        dP[1, j] += gain[b] * (a[2] * d0 - a[0] * d2)
+                        dP[2, j] += gain[b] * (a[0] * d1 - a[1] * d0)
+                    b = parent[b]
+            # camera frame, projection and its derivative A = d(u, v)/dX (zero depth column where clamped)
+            X0 = R[s, 0, 0] * Pm[0] + R[s, 0, 1] * Pm[1] + R[s, 0, 2] * Pm[2] + t[s, 0]
+            X1 = R[s, 1, 0] * Pm[0] + R[s, 1, 1] * Pm[1] + R[s, 1, 2] * Pm[2] + t[s, 1]
+            X2 = R[s, 2, 0] * Pm[0] + R[s, 2, 1] * Pm[1] + R[s, 2, 2] * Pm[2] + t[s, 2]
+            if depth_mask[m]:
+                for i in range(3):
+                    centroid[i] += Pm[i] / n_depth
+                    for j in range(nq):
+                        dcentroid[i, j] += dP[i, j] / n_depth
+            clamped = X2 < min_depth
+            inv_z = 1.0 / (min_depth if clamped else X2)
+            x, y = X0 * inv_z, X1 * inv_z
+            r0 = fx * x + sk * y + cx - uv[m, 0]
+            r1 = fy * y + cy - uv[m, 1]
+            sqm = r0 * r0 + r1 * r1
+            rh, dr = _robust(sqm, loss, scale)
+            sq[s, m], rho[s, m], drho[s, m] = sqm, rh, dr
+            omega = weights[m] * dr
+            if omega == 0.0:
+                continue
+            a00, a01, a02 = fx * inv_z, sk * inv_z, 0.0 if clamped else -(fx * x + sk * y) * inv_z
+            a11, a12 = fy * inv_z, 0.0 if clamped else -fy * y * inv_z
+            for i in range(3):
+                AR[0, i] = a00 * R[s, 0, i] + a01 * R[s, 1, i] + a02 * R[s, 2, i]
+                AR[1, i] = a11 * R[s, 1, i] + a12 * R[s, 2, i]
+            for d in range(2):
+                for j in range(nq):
+                    row[d, j] = AR[d, 0] * dP[0, j] + AR[d, 1] * dP[1, j] + AR[d, 2] * dP[2, j]
+                ax, ay, az = AR[d, 0], AR[d, 1], AR[d, 2]
+                row[d, nq] = Pm[1] * az - Pm[2] * ay          # dX/dphi = -R [P]x: the row P x a
+                row[d, nq + 1] = Pm[2] * ax - Pm[0] * az
+                row[d, nq + 2] = Pm[0] * ay - Pm[1] * ax
+            row[0, nq + 3], row[0, nq + 4], row[0, nq + 5] = a00, a01, a02
+            row[1, nq + 3], row[1, nq + 4], row[1, nq + 5] = 0.0, a11, a12
+            for i in range(P):
+                wi0, wi1 = omega * row[0, i], omega * row[1, i]
+                g[s, i] += wi0 * r0 + wi1 * r1
+                for j in range(i, P):
+                    H[s, i, j] += wi0 * row[0, j] + wi1 * row[1, j]
+        for i in range(P):
+            for j in range(i + 1, P):
+                H[s, j, i] = H[s, i, j]
+        # the depth prior's mean depth: linear in the points, so that of their centroid
+        rz0, rz1, rz2 = R[s, 2, 0], R[s, 2, 1], R[s, 2, 2]
+        z[s] = rz0 * centroid[0] + rz1 * centroid[1] + rz2 * centroid[2] + t[s, 2]
+        for j in range(nq):
+            jz[s, j] = rz0 * dcentroid[0, j] + rz1 * dcentroid[1, j] + rz2 * dcentroid[2, j]
+        jz[s, nq] = centroid[1] * rz2 - centroid[2] * rz1
+        jz[s, nq + 1] = centroid[2] * rz0 - centroid[0] * rz2
+        jz[s, nq + 2] = centroid[0] * rz1 - centroid[1] * rz0
+        jz[s, nq + 5] = 1.0
+    return sq, rho, drho, H, g, z, jz
+
+
+@njit(cache=True, nogil=True)
+def point_costs(q: np.ndarray, R: np.ndarray, t: np.ndarray, parent: np.ndarray, C: np.ndarray, CK: np.ndarray,
+                CKK: np.ndarray, Ca: np.ndarray, source: np.ndarray, gain: np.ndarray, bias: np.ndarray,
+                axis: np.ndarray, prismatic: np.ndarray, point_body: np.ndarray, point_local: np.ndarray,
+                n_joints: int, K: np.ndarray, uv: np.ndarray, loss: int, scale: float, min_depth: float):
+    """Robust costs rho and squared reprojection errors (S, M), px^2, of every fit point at joints q (S, J) and
+    poses (R (S, 3, 3), t (S, 3)), unweighted, without derivatives: the search by parts' grids, hundreds of
+    candidate joints a step (residuals.project and robust_weights, per point)."""
+    S, M, B = R.shape[0], point_body.shape[0], parent.shape[0]
+    rho, sq = np.empty((S, M)), np.empty((S, M))
+    T = np.empty((B, 4, 4))
+    fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    for s in range(S):
+        _body_poses(q[s], parent, C, CK, CKK, Ca, source, gain, bias, T)
+        for m in range(M):
+            bm = point_body[m]
+            l0, l1, l2 = point_local[m, 0], point_local[m, 1], point_local[m, 2]
+            p0 = T[bm, 0, 0] * l0 + T[bm, 0, 1] * l1 + T[bm, 0, 2] * l2 + T[bm, 0, 3]
+            p1 = T[bm, 1, 0] * l0 + T[bm, 1, 1] * l1 + T[bm, 1, 2] * l2 + T[bm, 1, 3]
+            p2 = T[bm, 2, 0] * l0 + T[bm, 2, 1] * l1 + T[bm, 2, 2] * l2 + T[bm, 2, 3]
+            X0 = R[s, 0, 0] * p0 + R[s, 0, 1] * p1 + R[s, 0, 2] * p2 + t[s, 0]
+            X1 = R[s, 1, 0] * p0 + R[s, 1, 1] * p1 + R[s, 1, 2] * p2 + t[s, 1]
+            X2 = R[s, 2, 0] * p0 + R[s, 2, 1] * p1 + R[s, 2, 2] * p2 + t[s, 2]
+            inv_z = 1.0 / max(X2, min_depth)
+            x, y = X0 * inv_z, X1 * inv_z
+            r0, r1 = fx * x + sk * y + cx - uv[m, 0], fy * y + cy - uv[m, 1]
+            sq[s, m] = r0 * r0 + r1 * r1
+            rho[s, m] = _robust(sq[s, m], loss, scale)[0]
+    return rho, sq
+
+
+@njit(cache=True, nogil=True)
+def damped_steps(H: np.ndarray, g: np.ndarray, damping: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """LM steps dx (S, P) solving (H + damping diag(H)) dx = -g per start (solver.damped_step's system: a floor on
+    the diagonal, parameters where fixed (S, P) get dx = 0), by a Cholesky factorization per start. H is a Gauss-Newton
+    matrix, so the damped one is positive definite; where rounding (or a NaN) says otherwise the start's step is 0,
+    which the fit rejects and retries with more damping."""
+    S, P = g.shape
+    dx = np.zeros((S, P))
+    A = np.empty((P, P))
+    L = np.empty((P, P))
+    for s in range(S):
+        top = 1e-12
+        for i in range(P):
+            top = max(top, H[s, i, i])
+        floor = 1e-9 * top
+        for i in range(P):
+            for j in range(P):
+                if fixed[s, i] or fixed[s, j]:
+                    A[i, j] = 1.0 if i == j else 0.0
+                else:
+                    A[i, j] = H[s, i, j]
+            if not fixed[s, i]:
+                A[i, i] += damping[s] * max(H[s, i, i], floor)
+        b = np.empty(P)
+        for i in range(P):
+            b[i] = 0.0 if fixed[s, i] else -g[s, i]
+        ok = True
+        for j in range(P):                                   # Cholesky A = L L^T
+            d = A[j, j]
+            for k in range(j):
+                d -= L[j, k] * L[j, k]
+            if not d > 0.0:
+                ok = False
+                break
+            L[j, j] = math.sqrt(d)
+            for i in range(j + 1, P):
+                v = A[i, j]
+                for k in range(j):
+                    v -= L[i, k] * L[j, k]
+                L[i, j] = v / L[j, j]
+        if not ok:
+            continue
+        y = np.empty(P)
+        for i in range(P):
+            v = b[i]
+            for k in range(i):
+                v -= L[i, k] * y[k]
+            y[i] = v / L[i, i]
+        for i in range(P - 1, -1, -1):
+            v = y[i]
+            for k in range(i + 1, P):
+                v -= L[k, i] * dx[s, k]
+            dx[s, i] = v / L[i, i]
+    return dx
