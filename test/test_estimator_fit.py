@@ -267,3 +267,28 @@ def test_fit_keypoints_the_fit_puts_out_of_view_lose_their_confidence_and_the_fr
                                np.stack([second.T_cam_base, first.T_cam_base]))
         assert costs[0] <= costs[1] * (1 + 1e-9)
     assert refitted >= 2  # truncated frames: the step ran
+
+
+@pytest.mark.parametrize("robot", ["panda", "kuka", "baxter"])
+def test_feed_forward_pose_is_the_paper_heads_forward_kinematics(robot):
+    """The estimator's numpy forward kinematics of the heads (joints, root pose [R | t]) gives the base pose that
+    model/network.py add_kinematics (pytorch-kinematics, what training uses) gives, also with known joints."""
+    import torch
+
+    from holo_pose_ros.geometry.rotation import rot6d_to_matrix
+    from holo_pose_ros.model.network import add_kinematics
+
+    estimator = Estimator.from_model(robot, min_confidence=0.0)
+    model = estimator.robot
+    rng = np.random.default_rng(7)
+    q = torch.from_numpy(rng.uniform(model.lower.numpy(), model.upper.numpy(), (1, model.n_joints))).float()
+    out = {"joints": q, "R": rot6d_to_matrix(torch.randn(1, 6)), "t": torch.tensor([[0.1, -0.2, 2.0]]),
+           "depth": torch.tensor([2.0]), "keypoint_confidence": torch.rand(1, model.n_keypoints)}
+    ours = estimator._kinematics(out, None, {})
+    reference = add_kinematics(model, dict(out))["T_cam_base"][0].double().numpy()
+    np.testing.assert_allclose(ours["T_cam_base"], reference, atol=1e-5)
+    known = rng.uniform(model.lower.numpy(), model.upper.numpy())
+    ours = estimator._kinematics(out, known, {})
+    reference = add_kinematics(model, {**out, "joints": torch.from_numpy(known)[None].float()})["T_cam_base"][0]
+    np.testing.assert_allclose(ours["joints"], known)
+    np.testing.assert_allclose(ours["T_cam_base"], reference.double().numpy(), atol=1e-5)

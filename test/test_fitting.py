@@ -23,7 +23,6 @@ from holo_pose_ros.fitting.residuals import (
     so3_exp,
     transform_points,
 )
-from holo_pose_ros.fitting.solver import damped_step
 from holo_pose_ros.fitting.synthetic import keypoints_in_camera, perturbed_start, sample_problem
 from holo_pose_ros.resources import config_dir
 from holo_pose_ros.robots.description import urdf_file
@@ -163,26 +162,6 @@ def test_robust_weights_are_the_derivative_of_the_loss(loss):
     assert np.all((drho > 0) & (drho <= 1))
     with pytest.raises(ValueError):
         robust_weights(s, "tukey", 10.0)
-
-
-def test_damped_step_solves_the_damped_system_and_freezes_fixed_parameters():
-    rng = np.random.default_rng(5)
-    A = rng.normal(size=(3, 7, 5))
-    H, g = np.swapaxes(A, 1, 2) @ A, rng.normal(size=(3, 5))
-    damping = np.array([0.0, 1e-2, 10.0])
-    dx = damped_step(H, g, damping)
-    for s in range(3):
-        expected = np.linalg.solve(H[s] + damping[s] * np.diag(np.diag(H[s])), -g[s])
-        np.testing.assert_allclose(dx[s], expected, rtol=1e-9, atol=1e-12)
-    fixed = np.zeros((3, 5), bool)
-    fixed[:, [1, 3]] = True
-    dx = damped_step(H, g, damping, fixed)
-    assert np.all(dx[:, [1, 3]] == 0.0)
-    free = [0, 2, 4]
-    for s in range(3):
-        Hs = H[s][np.ix_(free, free)]
-        np.testing.assert_allclose(dx[s, free], np.linalg.solve(Hs + damping[s] * np.diag(np.diag(Hs)), -g[s, free]),
-                                   rtol=1e-9, atol=1e-12)
 
 
 # -- the fit --------------------------------------------------------------------------------------------------

@@ -107,3 +107,61 @@ def test_point_costs_match_the_numpy_reference(loss):
     rho_ref, _ = robust_weights(np.sum(r * r, axis=-1), loss, 10.0)
     np.testing.assert_allclose(sq, np.sum(r * r, axis=-1), rtol=1e-10)
     np.testing.assert_allclose(rho, rho_ref, rtol=1e-10)
+
+
+def _damped(A: np.ndarray, b: np.ndarray, damping: float) -> np.ndarray:
+    """The reference LM step: solve (A + damping diag(A)) dx = -b."""
+    return np.linalg.solve(A + damping * np.diag(np.diag(A)), -b)
+
+
+def test_propose_solves_the_damped_system_with_the_priors():
+    """The LM proposal: the joints' prior and the depth prior join the normal equations, the damped system is
+    solved, and the candidate is (q + dq, R exp(dphi), t + dt) while no joint meets a limit."""
+    rng = np.random.default_rng(5)
+    S, J = 3, 4
+    P = J + 6
+    A = rng.normal(size=(S, 2 * P, P))
+    H, g = np.swapaxes(A, 1, 2) @ A, rng.normal(size=(S, P))
+    q, q_start = rng.uniform(-0.5, 0.5, (S, J)), rng.uniform(-0.5, 0.5, (S, J))
+    R, t = so3_exp(rng.normal(size=(S, 3))), rng.normal(size=(S, 3))
+    prior, z, jz = rng.uniform(0.5, 2.0, J), rng.uniform(1.0, 2.0, S), rng.normal(size=(S, P))
+    damping = np.array([0.0, 1e-2, 10.0])
+    lower, upper = np.full(J, -100.0), np.full(J, 100.0)
+    q_c, R_c, t_c = compiled.propose(q, R, t, H, g, q_start, prior, z, jz, 3.0, 1.5, lower, upper, damping, False)
+    for s in range(S):
+        A_s = H[s] + 3.0 * np.outer(jz[s], jz[s])
+        A_s[:J, :J] += np.diag(prior)
+        b_s = g[s] + 3.0 * (z[s] - 1.5) * jz[s]
+        b_s[:J] += prior * (q[s] - q_start[s])
+        dx = _damped(A_s, b_s, damping[s])
+        np.testing.assert_allclose(q_c[s], q[s] + dx[:J], rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(R_c[s], R[s] @ so3_exp(dx[J:J + 3]), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(t_c[s], t[s] + dx[J + 3:], rtol=1e-8, atol=1e-10)
+    assert np.all(H == np.swapaxes(A, 1, 2) @ A)                              # its inputs are not modified
+
+
+def test_propose_holds_joints_pushed_past_a_limit_and_poses_only():
+    """A joint on its limit whose descent points outward stays there (the others solve the system without it), a
+    joint the step would carry past a limit stops at it; a pose-only fit moves (R, t) alone."""
+    rng = np.random.default_rng(6)
+    J, P = 3, 9
+    A = rng.normal(size=(1, 2 * P, P))
+    H, g = np.swapaxes(A, 1, 2) @ A, rng.normal(size=(1, P))
+    g[0, 0] = abs(g[0, 0]) + 1.0                                             # descent lowers joint 0
+    q = np.array([[-1.0, 0.0, 0.0]])
+    lower, upper = np.array([-1.0, -5.0, -5.0]), np.array([1.0, 5.0, 5.0])
+    R, t = np.eye(3)[None], np.zeros((1, 3))
+    q_c, R_c, t_c = compiled.propose(q, R, t, H, g, q, np.zeros(J), np.ones(1), np.zeros((1, P)), 0.0, 0.0, lower,
+                                     upper, np.array([1e-3]), False)
+    free = np.arange(1, P)
+    dx = _damped(H[0][np.ix_(free, free)], g[0, free], 1e-3)
+    assert q_c[0, 0] == -1.0
+    np.testing.assert_allclose(q_c[0, 1:], np.clip(dx[:J - 1], -5.0, 5.0), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(t_c[0], dx[-3:], rtol=1e-8, atol=1e-10)
+    Hp, gp = H[:, J:, J:].copy(), g[:, J:].copy()
+    q_c, R_c, t_c = compiled.propose(q, R, t, Hp, gp, q, np.zeros(J), np.ones(1), np.zeros((1, 6)), 0.0, 0.0, lower,
+                                     upper, np.array([1e-3]), True)
+    dx = _damped(Hp[0], gp[0], 1e-3)
+    np.testing.assert_array_equal(q_c, q)
+    np.testing.assert_allclose(R_c[0], so3_exp(dx[:3]), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(t_c[0], dx[3:], rtol=1e-8, atol=1e-10)

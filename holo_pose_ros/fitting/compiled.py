@@ -196,56 +196,101 @@ def point_costs(q: np.ndarray, R: np.ndarray, t: np.ndarray, parent: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def damped_steps(H: np.ndarray, g: np.ndarray, damping: np.ndarray, fixed: np.ndarray) -> np.ndarray:
-    """LM steps dx (S, P) solving (H + damping diag(H)) dx = -g per start (solver.damped_step's system: a floor on
-    the diagonal, parameters where fixed (S, P) get dx = 0), by a Cholesky factorization per start. H is a Gauss-Newton
-    matrix, so the damped one is positive definite; where rounding (or a NaN) says otherwise the start's step is 0,
-    which the fit rejects and retries with more damping."""
-    S, P = g.shape
-    dx = np.zeros((S, P))
-    A = np.empty((P, P))
-    L = np.empty((P, P))
-    for s in range(S):
-        top = 1e-12
-        for i in range(P):
-            top = max(top, H[s, i, i])
-        floor = 1e-9 * top
-        for i in range(P):
+def _damped_solve(A: np.ndarray, b: np.ndarray, damping: float, fixed: np.ndarray) -> np.ndarray:
+    """dx solving (A + damping diag(A)) dx = b (one start; A, b are overwritten), a floor on the diagonal, dx = 0 where
+    fixed, by Cholesky. A is a Gauss-Newton matrix, so the damped one is positive definite; where rounding (or a NaN)
+    says otherwise the step is 0, which the fit rejects and retries with more damping."""
+    P = b.shape[0]
+    top = 1e-12
+    for i in range(P):
+        top = max(top, A[i, i])
+    floor = 1e-9 * top
+    for i in range(P):
+        if fixed[i]:
             for j in range(P):
-                if fixed[s, i] or fixed[s, j]:
-                    A[i, j] = 1.0 if i == j else 0.0
-                else:
-                    A[i, j] = H[s, i, j]
-            if not fixed[s, i]:
-                A[i, i] += damping[s] * max(H[s, i, i], floor)
-        b = np.empty(P)
-        for i in range(P):
-            b[i] = 0.0 if fixed[s, i] else -g[s, i]
-        ok = True
-        for j in range(P):                                   # Cholesky A = L L^T
-            d = A[j, j]
+                A[i, j] = 0.0
+                A[j, i] = 0.0
+            A[i, i], b[i] = 1.0, 0.0
+        else:
+            A[i, i] += damping * max(A[i, i], floor)
+    dx = np.zeros(P)
+    L = np.zeros((P, P))
+    for j in range(P):                                   # Cholesky A = L L^T
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return dx
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, P):
+            v = A[i, j]
             for k in range(j):
-                d -= L[j, k] * L[j, k]
-            if not d > 0.0:
-                ok = False
-                break
-            L[j, j] = math.sqrt(d)
-            for i in range(j + 1, P):
-                v = A[i, j]
-                for k in range(j):
-                    v -= L[i, k] * L[j, k]
-                L[i, j] = v / L[j, j]
-        if not ok:
-            continue
-        y = np.empty(P)
-        for i in range(P):
-            v = b[i]
-            for k in range(i):
-                v -= L[i, k] * y[k]
-            y[i] = v / L[i, i]
-        for i in range(P - 1, -1, -1):
-            v = y[i]
-            for k in range(i + 1, P):
-                v -= L[k, i] * dx[s, k]
-            dx[s, i] = v / L[i, i]
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    y = np.empty(P)
+    for i in range(P):
+        v = b[i]
+        for k in range(i):
+            v -= L[i, k] * y[k]
+        y[i] = v / L[i, i]
+    for i in range(P - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, P):
+            v -= L[k, i] * dx[k]
+        dx[i] = v / L[i, i]
     return dx
+
+
+@njit(cache=True, nogil=True)
+def _so3_exp(phi: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the axis-angle vector phi (radians), as residuals.so3_exp."""
+    theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    out = np.eye(3)
+    if theta == 0.0:
+        return out
+    a, half = math.sin(theta) / theta, math.sin(0.5 * theta) / theta
+    b = 2.0 * half * half
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    KK = K @ K
+    for i in range(3):
+        for j in range(3):
+            out[i, j] += a * K[i, j] + b * KK[i, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def propose(q: np.ndarray, R: np.ndarray, t: np.ndarray, H: np.ndarray, g: np.ndarray, q_start: np.ndarray,
+            prior: np.ndarray, z: np.ndarray, jz: np.ndarray, depth_precision: float, depth_m: float,
+            lower: np.ndarray, upper: np.ndarray, damping: np.ndarray, pose_only: bool):
+    """One Levenberg-Marquardt proposal per start from its normal equations H (S, P, P), g (S, P) (not modified):
+    the depth prior (depth_precision * (z - depth_m)^2 with z's gradient jz (S, P); none when depth_precision is 0)
+    and the joints' prior (precision prior (J,) about q_start (S, J)) join them, joints on a limit whose descent points
+    outward are held (projected Newton), the damped system is solved; returns the candidate (q clipped to
+    [lower, upper], R exp([dphi]x), t + dt) as residuals.py's increments."""
+    S, P = g.shape
+    nq = 0 if pose_only else q.shape[1]
+    q_c, R_c, t_c = q.copy(), np.empty_like(R), np.empty_like(t)
+    fixed = np.zeros(P, np.bool_)
+    for s in range(S):
+        A, b = H[s].copy(), np.empty(P)
+        for i in range(P):
+            b[i] = g[s, i]
+        if depth_precision > 0.0:
+            e = depth_precision * (z[s] - depth_m)
+            for i in range(P):
+                b[i] += e * jz[s, i]
+                for j in range(P):
+                    A[i, j] += depth_precision * jz[s, i] * jz[s, j]
+        for j in range(nq):
+            A[j, j] += prior[j]
+            b[j] += prior[j] * (q[s, j] - q_start[s, j])
+            fixed[j] = (q[s, j] <= lower[j] and b[j] > 0.0) or (q[s, j] >= upper[j] and b[j] < 0.0)
+        dx = _damped_solve(A, -b, damping[s], fixed)
+        for j in range(nq):
+            q_c[s, j] = min(max(q[s, j] + dx[j], lower[j]), upper[j])
+        Rs = R[s] @ _so3_exp(dx[nq:nq + 3])
+        for i in range(3):
+            t_c[s, i] = t[s, i] + dx[nq + 3 + i]
+            for j in range(3):
+                R_c[s, i, j] = Rs[i, j]
+    return q_c, R_c, t_c

@@ -39,7 +39,6 @@ from holo_pose_ros.fitting.residuals import (
     project,
     reprojection_residuals_and_jacobian,
     robust_weights,
-    so3_exp,
     transform_points,
 )
 from holo_pose_ros.fitting.silhouette import (
@@ -105,15 +104,6 @@ def normal_equations(r: np.ndarray, jac: np.ndarray, omega: np.ndarray) -> tuple
     J2 = jac.reshape(S, d * M, n)
     JwT = np.swapaxes((jac * omega[..., None, None]).reshape(S, d * M, n), 1, 2)   # (S, P, dM)
     return JwT @ J2, (JwT @ r.reshape(S, d * M, 1))[..., 0]
-
-
-def damped_step(H: np.ndarray, g: np.ndarray, damping: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
-    """LM steps dx (S, P) solving (H + damping diag(H)) dx = -g per start, for normal matrices H (S, P, P),
-    gradients g (S, P) and dampings (S,); parameters where `fixed` (S, P) is True get dx = 0. A floor on the
-    diagonal keeps parameters that nothing observes from making the system singular (compiled.damped_steps)."""
-    fixed = np.zeros(g.shape, bool) if fixed is None else np.ascontiguousarray(fixed, bool)
-    return compiled.damped_steps(np.ascontiguousarray(H, np.float64), np.ascontiguousarray(g, np.float64),
-                                 np.ascontiguousarray(damping, np.float64), fixed)
 
 
 def _project_rotation(R: np.ndarray) -> np.ndarray:
@@ -411,9 +401,9 @@ class Fitter:
         q_start = q.copy()
         prior = self._prior_precision * W                                      # (J,) per unit of (q - q0)^2
         nq = 0 if pose_only else J
-        diag = np.arange(nq)
 
         depth_precision = 0.0 if depth_prior_m is None else W * cfg["depth_prior_weight"] / cfg["depth_prior_sigma_m"] ** 2
+        depth_m = 0.0 if depth_prior_m is None else float(depth_prior_m)
         if base_prior is not None:
             R_prior = np.asarray(base_prior.T_cam_base, float)[:3, :3]
             t_prior = np.asarray(base_prior.T_cam_base, float)[:3, 3]
@@ -450,36 +440,26 @@ class Fitter:
             wk = w if final else stages[iterations - 1]
             if state.weights is not wk:                                        # a new chain-growing stage
                 state = linearize(state.q, state.R, state.t, wk)
-            H, g = state.H.copy(), state.g.copy()
+            H, g = state.H, state.g
             F = state.rho @ wk + prior_cost(state)
             if silhouette is not None:
                 wc = chamfer_weight(iterations)
-                H += state.sil_H + wc * state.ch_H
-                g += state.sil_g + wc * state.ch_g
+                H = H + state.sil_H + wc * state.ch_H
+                g = g + state.sil_g + wc * state.ch_g
                 F += state.sil_F + wc * state.ch_F
-            if depth_prior_m is not None:
-                H += depth_precision * state.jz[:, :, None] * state.jz[:, None, :]
-                g += depth_precision * state.jz * (state.z - depth_prior_m)[:, None]
             if base_prior is not None:  # IRLS of the Cauchy; the rotation's Jacobian taken as the identity
                 d2, e_r, e_t = base_sigmas2(state)
                 down = (1.0 / (1.0 + d2 / base_scale2))[:, None]
                 rot, trans = np.arange(nq, nq + 3), np.arange(nq + 3, nq + 6)
+                H, g = H.copy(), g.copy()
                 H[:, rot, rot] += precision_r * down
                 H[:, trans, trans] += precision_t * down
                 g[:, nq:nq + 3] += precision_r * down * e_r
                 g[:, nq + 3:nq + 6] += precision_t * down * e_t
-            fixed = None
-            if not pose_only:
-                H[:, diag, diag] += prior
-                g[:, :J] += prior * (state.q - q_start)
-                # joints on a limit whose descent direction points outward stay put (projected Newton)
-                out = ((state.q <= self.lower) & (g[:, :J] > 0)) | ((state.q >= self.upper) & (g[:, :J] < 0))
-                if out.any():
-                    fixed = np.zeros((S, nq + 6), bool)
-                    fixed[:, :J] = out
-            dx = damped_step(H, g, damping, fixed)
-            q_c = state.q if pose_only else np.clip(state.q + dx[:, :J], self.lower, self.upper)
-            cand = linearize(q_c, state.R @ so3_exp(dx[:, nq:nq + 3]), state.t + dx[:, nq + 3:], wk)
+            # the depth and joint priors, the limits (projected Newton) and the damped step, compiled
+            cand = linearize(*compiled.propose(state.q, state.R, state.t, H, g, q_start, prior, state.z, state.jz,
+                                               depth_precision, depth_m, self.lower, self.upper, damping, pose_only),
+                             wk)
             F_c = cand.rho @ wk + prior_cost(cand)
             if silhouette is not None:
                 F_c += cand.sil_F + wc * cand.ch_F
