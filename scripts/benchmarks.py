@@ -155,8 +155,8 @@ def write_page(path: Path, cfg: dict, rows: list[dict], candidates: list[dict], 
         "",
         "## Shipped models, end to end",
         "",
-        "One `sensor_msgs/Image` in, every output message built: image conversion, localization, crop, network, "
-        "forward kinematics, the lifter and the kinematic fit when the model's card chose the fitted estimate "
+        "One `sensor_msgs/Image` in, every output message built: image conversion, localization (the whole-image "
+        "pass), crop and network (the crop pass), the heads' forward kinematics, the lifter and the kinematic fit when the model's card chose the fitted estimate "
         "(*estimate*), messages (`holo-pose benchmark`). *Localize + crop* runs two network passes a frame "
         "(the whole image, then the robot's box); *tracking* one (the previous frame's box), on a generated video "
         f"played in order (seed {cfg['tracking_video']['seed']}, config/generate/video.yaml). *Node* is the same estimator as a ROS 2 node in its own process, timed from "
