@@ -67,7 +67,7 @@ PARAMETERS: ParameterSpecs = {
                        _PROBABILITY),
     "fit": ("auto | true | false: fit the kinematic model to the detected 2D keypoints (false: the paper's "
             "feed-forward estimate; auto: the model card's validated choice).", False, {}),
-    "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (about 18 ms a "
+    "parts": ("auto | true | false: search the fit by parts, each chain swept two joints at a time (about 5 ms a "
               "frame more; auto: the model card's validated choice); when tracking, tracked frames search too only "
               "where the card chose it (estimator.parts_tracked).", False, {}),
     "close_ups": ("auto | true | false: a second network pass on a close-up of each of the robot YAML's close_ups "
