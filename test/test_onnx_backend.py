@@ -15,7 +15,8 @@ from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import generate, load_generator_config
 from holo_pose_ros.data.training import RenderedViews, SampleConfig
 from holo_pose_ros.estimator import Estimator
-from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cache_dir, cached_export
+from holo_pose_ros.model.lifter import load_lifter
+from holo_pose_ros.model.onnx_runtime import OnnxNetwork, cache_dir, cached_export, cached_lifter_export
 from holo_pose_ros.model.weights import load_model
 from small_model import save_small_model
 
@@ -79,6 +80,27 @@ def test_shipped_model_estimates_agree_across_backends(frames):
             np.testing.assert_allclose(b.joints, a.joints, atol=2e-2)
             np.testing.assert_allclose(b.keypoints_2d, a.keypoints_2d, atol=1.0)
     assert n_same >= 2
+
+
+def test_the_lifter_graph_gives_the_torch_lifters_hypotheses(frames):
+    """The onnxruntime estimator runs the shipped lifter's ONNX export (features, MLP and pose decoding in one
+    graph, cached by the lifter's hash): on real detections its hypotheses are the torch lifter's."""
+    estimator = Estimator.from_model("panda", backend="onnxruntime")
+    assert estimator.lifter_graph is not None
+    assert cached_lifter_export(estimator.lifter, "panda_lifter") == estimator.lifter_graph.path
+    reader = DreamReader(frames, "panda")
+    lifter = load_lifter("panda_lifter")
+    for frame in list(reader)[:3]:
+        detection = estimator.detect(reader.load_image(frame), frame.K)
+        f32 = lambda a: torch.from_numpy(np.array(a, dtype=np.float32)[None])  # noqa: E731
+        inputs = (f32(detection.uv), f32(detection.confidence), f32(detection.box), f32(frame.K))
+        with torch.inference_mode():
+            q, T = lifter.hypotheses(*inputs)
+        out = estimator.lifter_graph(*inputs)
+        np.testing.assert_allclose(out["joints"].numpy(), q.numpy(), atol=1e-4)
+        np.testing.assert_allclose(out["T_cam_base"].numpy(), T.numpy(), atol=1e-4)
+        q_est, T_est = estimator._lifter_hypotheses(detection, frame.K, None, {})
+        np.testing.assert_allclose(q_est, q[0].double().numpy(), atol=1e-4)
 
 
 def test_exports_are_cached_by_weights(tmp_path, small_model_card):

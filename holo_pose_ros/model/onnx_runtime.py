@@ -22,6 +22,7 @@ from holo_pose_ros.model.cards import read_card
 LOG = logging.getLogger(__name__)
 OPSET = 18
 INPUTS = ("image", "K_crop")
+LIFTER_INPUTS = ("uv", "confidence", "box", "K")
 
 
 def export_onnx(net: HolisticNet, path: str | Path) -> Path:
@@ -42,6 +43,29 @@ def export_localizer(net: HolisticNet, size: int, path: str | Path) -> Path:
     with torch.inference_mode():
         names = list(localizer(*example).keys())
     return export_module(localizer, example, path, ("image",), names)
+
+
+class LifterGraph(torch.nn.Module):
+    """The lifter's hypotheses as one graph, features, MLP and pose decoding together: (uv (B, M, 2) image px,
+    confidence (B, M), box (B, 3), K (B, 3, 3)) -> (joints (B, H, J), T_cam_base (B, H, 4, 4)), float32."""
+
+    def __init__(self, lifter: torch.nn.Module):
+        super().__init__()
+        self.lifter = lifter
+
+    def forward(self, uv: torch.Tensor, confidence: torch.Tensor, box: torch.Tensor, K: torch.Tensor):
+        return self.lifter.hypotheses(uv, confidence, box, K)
+
+
+def export_lifter(lifter: torch.nn.Module, path: str | Path) -> Path:
+    """Write `lifter`'s hypotheses (LifterGraph) in eval mode as one ONNX file with a dynamic batch, on a CPU copy.
+    Its inputs are 'uv', 'confidence', 'box', 'K' and its outputs 'joints' and 'T_cam_base'."""
+    graph = LifterGraph(copy.deepcopy(lifter).cpu().float().eval()).eval()
+    M = lifter.n_fit_keypoints
+    box = torch.tensor([[100.0, 80.0, 300.0], [40.0, 20.0, 200.0]])
+    K = torch.tensor([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3).contiguous()
+    example = (box[:, None, :2] + torch.rand(2, M, 2) * box[:, None, 2:], torch.rand(2, M), box, K)
+    return export_module(graph, example, path, LIFTER_INPUTS, ["joints", "T_cam_base"])
 
 
 def export_module(module: torch.nn.Module, example: tuple[torch.Tensor, ...], path: str | Path,
@@ -113,6 +137,22 @@ def cached_export(net: HolisticNet, model: str | Path, localize_size: int | None
             export_onnx(net, path)
         else:
             export_localizer(net, int(localize_size), path)
+    return path
+
+
+def cached_lifter_export(lifter: torch.nn.Module, card_path: str | Path) -> Path:
+    """The ONNX export of the lifter whose card is `card_path` (`lifter` is it, loaded), made once and reused, keyed
+    like cached_export by the hash of card and weights and the package version."""
+    from holo_pose_ros.model.cards import read_card_file
+    from holo_pose_ros.model.lifter import resolve_lifter
+
+    card_path = resolve_lifter(card_path)
+    digest = hashlib.sha256(card_path.read_bytes())
+    digest.update((card_path.parent / read_card_file(card_path)["weights"]).read_bytes())
+    path = cache_dir() / f"{card_path.stem}-{__version__}-{digest.hexdigest()[:16]}.onnx"
+    if not path.is_file():
+        LOG.info("exporting %s to ONNX (once): %s", card_path, path)
+        export_lifter(lifter, path)
     return path
 
 
