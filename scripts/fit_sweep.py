@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     variants = yaml.safe_load(open(args.variants))["variants"]
     estimator = Estimator.from_model(args.model, backend="onnxruntime", fit=True)
+    estimator.decode_mask = estimator.silhouette or any(v.get("silhouette") for v in variants)
     reader = DreamReader(args.data, estimator.robot)
     frames = list(reader)[:args.frames]
     detections = [(f, estimator.detect(reader.load_image(f), f.K)) for f in tqdm(frames, desc="detect")]
