@@ -165,3 +165,37 @@ def test_propose_holds_joints_pushed_past_a_limit_and_poses_only():
     np.testing.assert_array_equal(q_c, q)
     np.testing.assert_allclose(R_c[0], so3_exp(dx[:3]), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(t_c[0], dx[3:], rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["panda", "kuka", "baxter"])
+def test_the_compiled_loop_fits_as_the_numpy_loop(name, monkeypatch):
+    """compiled.lm_fit against Fitter.fit's numpy loop on noisy views with outliers and zero weights: from several
+    starts, with and without the depth prior and the chain-growing stages, with known joints; the same fits."""
+    from holo_pose_ros.data.generator import load_generator_config
+    from holo_pose_ros.fitting import Fitter
+    from holo_pose_ros.fitting.synthetic import perturbed_start, sample_problem
+
+    model = RobotModel(name, dtype=torch.float64)
+    rng = np.random.default_rng(8)
+    generator = load_generator_config("randomized")
+    prismatic = np.array([t == "prismatic" for t in model.joint_types])
+    for config, depth in (({}, False), ({"grow_chain_levels": 2}, True), ({"robust_loss": "huber"}, True)):
+        compiled_fitter, numpy_fitter = Fitter(model, config), Fitter(model, config)
+        numpy_fitter.compiled_loop = False
+        for _ in range(3):
+            problem = sample_problem(compiled_fitter.tree, compiled_fitter.lower, compiled_fitter.upper, generator, rng)
+            starts = [perturbed_start(problem, compiled_fitter.lower, compiled_fitter.upper, prismatic, rng, 30.0, 0.1)
+                      for _ in range(3)]
+            q0, T0 = np.stack([s[0] for s in starts]), np.stack([s[1] for s in starts])
+            uv = problem.uv + rng.normal(0, 3.0, problem.uv.shape)
+            uv[rng.uniform(size=len(uv)) < 0.1] += 80.0                    # outliers
+            weights = rng.uniform(0.0, 1.0, len(uv)) * (rng.uniform(size=len(uv)) > 0.15)
+            depth_m = float(problem.T_cam_base[2, 3]) * 1.03 if depth else None
+            for known in (None, problem.q):
+                a = compiled_fitter.fit(uv, weights, problem.K, q0, T0, known_joints=known, depth_prior_m=depth_m)
+                b = numpy_fitter.fit(uv, weights, problem.K, q0, T0, known_joints=known, depth_prior_m=depth_m)
+                assert a.iterations == b.iterations and a.start_index == b.start_index
+                np.testing.assert_allclose(a.costs, b.costs, rtol=1e-7, atol=1e-9)
+                np.testing.assert_allclose(a.q_starts, b.q_starts, atol=1e-7)
+                np.testing.assert_allclose(a.T_starts, b.T_starts, atol=1e-7)
+                assert a.rms_px == pytest.approx(b.rms_px, rel=1e-7)

@@ -242,6 +242,16 @@ def _damped_solve(A: np.ndarray, b: np.ndarray, damping: float, fixed: np.ndarra
 
 
 @njit(cache=True, nogil=True)
+def _matmul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A B of (3, 3) matrices, written out: numba's matrix products need SciPy's BLAS, which is not a dependency."""
+    out = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _so3_exp(phi: np.ndarray) -> np.ndarray:
     """(3, 3) rotation of the axis-angle vector phi (radians), as residuals.so3_exp."""
     theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
@@ -251,7 +261,7 @@ def _so3_exp(phi: np.ndarray) -> np.ndarray:
     a, half = math.sin(theta) / theta, math.sin(0.5 * theta) / theta
     b = 2.0 * half * half
     K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    KK = K @ K
+    KK = _matmul3(K, K)
     for i in range(3):
         for j in range(3):
             out[i, j] += a * K[i, j] + b * KK[i, j]
@@ -288,9 +298,104 @@ def propose(q: np.ndarray, R: np.ndarray, t: np.ndarray, H: np.ndarray, g: np.nd
         dx = _damped_solve(A, -b, damping[s], fixed)
         for j in range(nq):
             q_c[s, j] = min(max(q[s, j] + dx[j], lower[j]), upper[j])
-        Rs = R[s] @ _so3_exp(dx[nq:nq + 3])
+        Rs = _matmul3(R[s], _so3_exp(dx[nq:nq + 3]))
         for i in range(3):
             t_c[s, i] = t[s, i] + dx[nq + 3 + i]
             for j in range(3):
                 R_c[s, i, j] = Rs[i, j]
     return q_c, R_c, t_c
+
+
+@njit(cache=True, nogil=True)
+def _objective(rho: np.ndarray, weights: np.ndarray, q: np.ndarray, q_start: np.ndarray, prior: np.ndarray,
+               z: np.ndarray, depth_precision: float, depth_m: float, pose_only: bool) -> np.ndarray:
+    """(S,) the fit's objective per start: robust keypoint costs weighed by `weights`, the joints' prior, the depth
+    prior (px^2)."""
+    S, M = rho.shape
+    F = np.zeros(S)
+    for s in range(S):
+        for m in range(M):
+            F[s] += rho[s, m] * weights[m]
+        if not pose_only:
+            for j in range(q.shape[1]):
+                F[s] += prior[j] * (q[s, j] - q_start[s, j]) ** 2
+        if depth_precision > 0.0:
+            F[s] += depth_precision * (z[s] - depth_m) ** 2
+    return F
+
+
+@njit(cache=True, nogil=True)
+def _weighted_sums(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(S,) sum_m a[s, m] w[m], written out (numba's matrix products need SciPy's BLAS)."""
+    out = np.zeros(a.shape[0])
+    for s in range(a.shape[0]):
+        for m in range(a.shape[1]):
+            out[s] += a[s, m] * w[m]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def lm_fit(q0: np.ndarray, R0: np.ndarray, t0: np.ndarray, stages: np.ndarray, w: np.ndarray, P_known: np.ndarray,
+           pose_only: bool, parent: np.ndarray, C: np.ndarray, CK: np.ndarray, CKK: np.ndarray, Ca: np.ndarray,
+           source: np.ndarray, gain: np.ndarray, bias: np.ndarray, axis: np.ndarray, prismatic: np.ndarray,
+           point_body: np.ndarray, point_local: np.ndarray, n_joints: int, K: np.ndarray, uv: np.ndarray, loss: int,
+           scale: float, min_depth: float, depth_points: np.ndarray, prior: np.ndarray, depth_precision: float,
+           depth_m: float, lower: np.ndarray, upper: np.ndarray, iterations: int, damping_init: float,
+           damping_up: float, damping_down: float, damping_min: float, damping_max: float,
+           relative_tolerance: float, absolute_tolerance: float):
+    """Fitter.fit's Levenberg-Marquardt loop, compiled, for fits without a silhouette or a base prior (the estimator's
+    every fit but the static camera's): all starts in lockstep from (q0, R0, t0), the chain-growing stages' point
+    weights (rows of `stages`, then w), the joints' and the depth prior, the same acceptance, damping schedule and
+    convergence test as the numpy loop (solver.py), which stays the reference. Returns the final (q, R, t), the data
+    costs sum w rho and sum w |r|^2 (S,) at the end and at the start, and the iterations run."""
+    S = q0.shape[0]
+    n_stages = stages.shape[0]
+    first = stages[0] if n_stages > 0 else w
+    sq, rho, drho, H, g, z, jz = linearize(q0, R0, t0, P_known, pose_only, parent, C, CK, CKK, Ca, source, gain, bias,
+                                           axis, prismatic, point_body, point_local, n_joints, K, uv, first, loss,
+                                           scale, min_depth, depth_points)
+    begin_rho, begin_sq = _weighted_sums(rho, w), _weighted_sums(sq, w)
+    q, R, t = q0.copy(), R0.copy(), t0.copy()
+    q_start = q0.copy()
+    damping = np.full(S, damping_init)
+    converged = np.zeros(S, np.bool_)
+    stage_of_state = 0 if n_stages > 0 else -1              # which weights the state's H, g were built with
+    it = 0
+    for it in range(1, iterations + 1):
+        final = it > n_stages
+        stage = -1 if final else it - 1
+        wk = w if final else stages[stage]
+        if stage != stage_of_state:
+            sq, rho, drho, H, g, z, jz = linearize(q, R, t, P_known, pose_only, parent, C, CK, CKK, Ca, source, gain,
+                                                   bias, axis, prismatic, point_body, point_local, n_joints, K, uv, wk,
+                                                   loss, scale, min_depth, depth_points)
+            stage_of_state = stage
+        F = _objective(rho, wk, q, q_start, prior, z, depth_precision, depth_m, pose_only)
+        q_c, R_c, t_c = propose(q, R, t, H, g, q_start, prior, z, jz, depth_precision, depth_m, lower, upper, damping,
+                                pose_only)
+        sq_c, rho_c, drho_c, H_c, g_c, z_c, jz_c = linearize(q_c, R_c, t_c, P_known, pose_only, parent, C, CK, CKK,
+                                                             Ca, source, gain, bias, axis, prismatic, point_body,
+                                                             point_local, n_joints, K, uv, wk, loss, scale, min_depth,
+                                                             depth_points)
+        F_c = _objective(rho_c, wk, q_c, q_start, prior, z_c, depth_precision, depth_m, pose_only)
+        for s in range(S):
+            accept = F_c[s] < F[s]                                     # False for NaN
+            if final:
+                if accept:
+                    data = 0.0
+                    for m in range(w.shape[0]):
+                        data += rho_c[s, m] * w[m]
+                    if (F[s] - F_c[s]) < relative_tolerance * F[s] or data < absolute_tolerance:
+                        converged[s] = True
+                elif damping[s] >= damping_max:
+                    converged[s] = True
+            if accept:
+                q[s], R[s], t[s] = q_c[s], R_c[s], t_c[s]
+                sq[s], rho[s], drho[s], H[s], g[s], z[s], jz[s] = sq_c[s], rho_c[s], drho_c[s], H_c[s], g_c[s], \
+                    z_c[s], jz_c[s]
+                damping[s] = min(max(damping[s] * damping_down, damping_min), damping_max)
+            else:
+                damping[s] = min(max(damping[s] * damping_up, damping_min), damping_max)
+        if converged.all():
+            break
+    return q, R, t, _weighted_sums(rho, w), _weighted_sums(sq, w), begin_rho, begin_sq, it

@@ -155,6 +155,9 @@ class Fitter:
     """Fits one robot's joints and base pose to 2D fit keypoints (and optionally a silhouette); build once, call fit()
     per frame."""
 
+    compiled_loop = True   # fits without a silhouette or a base prior run compiled.lm_fit; False: the numpy loop
+                           # of fit() (the reference, which the silhouette and base prior always take)
+
     def __init__(self, robot: RobotModel, config: dict | str | Path | None = None,
                  meshes: Mapping[str, TriangleMesh] | None = None):
         """`robot` gives the kinematics and joint limits; `config` overrides config/fitting.yaml. `meshes` (URDF link
@@ -430,6 +433,22 @@ class Fitter:
                 + base_cost(state)
 
         stages = [] if pose_only else self._stage_weights(w)[:int(cfg["iterations"]) // 2]  # half at least see all
+        if self.compiled_loop and silhouette is None and base_prior is None:   # the loop below, compiled
+            q_f, R_f, t_f, end, end_sq, begin, begin_sq, iterations = compiled.lm_fit(
+                q, R, t, np.stack(stages) if stages else np.zeros((0, len(w))), w, P_fixed, pose_only,
+                *self.tree.compiled_arrays, K, uv_c, loss, scale, min_depth, depth_points, prior, depth_precision,
+                depth_m, self.lower, self.upper, int(cfg["iterations"]), float(cfg["damping_init"]),
+                float(cfg["damping_up"]), float(cfg["damping_down"]), float(cfg["damping_min"]),
+                float(cfg["damping_max"]), float(cfg["relative_tolerance"]), float(cfg["absolute_tolerance_px2"]) * W_all)
+            back = end > begin                          # never worse than the start itself (see below)
+            q_f, R_f, t_f = (np.where(back.reshape((-1,) + (1,) * (a.ndim - 1)), a, f)
+                             for a, f in ((q, q_f), (R, R_f), (t, t_f)))
+            costs = np.where(back, begin, end) / W_all
+            best = int(np.argmin(costs))
+            T_starts = self._matrices(R_f, t_f)
+            return FitResult(q_f[best].copy(), T_starts[best], float(costs[best]),
+                             self._rms(np.where(back, begin_sq, end_sq)[best] / max(W, 1e-300), W), best, costs,
+                             int(iterations), n_points, None, q_f.copy(), T_starts)
         state = linearize(q, R, t, stages[0] if stages else w)
         start_state = state
         damping = np.full(S, float(cfg["damping_init"]))
