@@ -1,11 +1,15 @@
-"""The fit's inner step compiled with numba: forward kinematics of the fit keypoints, their reprojection residuals,
-robust weights and the IRLS Gauss-Newton normal equations of every start in one pass. Pixels, metres, radians.
+"""The kinematic fit compiled with numba: forward kinematics of the fit keypoints, their reprojection residuals, robust
+weights and the IRLS Gauss-Newton normal equations of every start in one pass (`linearize`); the grid costs of the
+search by parts (`point_costs`); the Levenberg-Marquardt proposal (`propose`) and the whole loop (`lm_fit`) of fits
+without a silhouette or a base prior. Pixels, metres, radians.
 
 Why: the search by parts linearizes about 40 times a frame on a few starts and ~100 points; in numpy each
-linearization is some 30 array operations on small arrays (0.3 ms, mostly call overhead) and builds the whole
-(S, M, 2, J + 6) Jacobian only to contract it. Compiled, a point's Jacobian rows live in registers and go straight
-into H and g. The numpy functions (kinematic_tree.py, residuals.py, solver.normal_equations) stay the reference the
-tests compare with, and serve the silhouette terms.
+linearization was some 30 array operations on small arrays (0.3 ms, mostly call overhead) and built the whole
+(S, M, 2, J + 6) Jacobian only to contract it. Compiled, a point's Jacobian rows go straight into H and g, and the
+loop's bookkeeping costs nothing (fit by parts 23 -> 5 ms, docs/speed.md). The numpy code (kinematic_tree.py,
+residuals.py, solver.normal_equations and Fitter.fit's loop) stays the reference that the tests compare with, and
+serves the silhouette and the base prior. No matrix product here goes through numba's BLAS (SciPy's), which is not a
+dependency: they are written out.
 """
 
 from __future__ import annotations
