@@ -8,8 +8,8 @@ linearization was some 30 array operations on small arrays (0.3 ms, mostly call 
 (S, M, 2, J + 6) Jacobian only to contract it. Compiled, a point's Jacobian rows go straight into H and g, and the
 loop's bookkeeping costs nothing (fit by parts 23 -> 5 ms, docs/speed.md). The numpy code (kinematic_tree.py,
 residuals.py, solver.normal_equations and Fitter.fit's loop) stays the reference that the tests compare with, and
-serves the silhouette and the base prior. No matrix product here goes through numba's BLAS (SciPy's), which is not a
-dependency: they are written out.
+serves the silhouette and the base prior. Matrix products are written out: numba's own go through SciPy's BLAS,
+which this module does not need.
 """
 
 from __future__ import annotations
@@ -247,7 +247,7 @@ def _damped_solve(A: np.ndarray, b: np.ndarray, damping: float, fixed: np.ndarra
 
 @njit(cache=True, nogil=True)
 def _matmul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """A B of (3, 3) matrices, written out: numba's matrix products need SciPy's BLAS, which is not a dependency."""
+    """A B of (3, 3) matrices, written out (numba's matrix products go through SciPy's BLAS)."""
     out = np.zeros((3, 3))
     for i in range(3):
         for j in range(3):
