@@ -169,6 +169,24 @@ def test_a_cpu_run_with_frozen_blocks_runs_them_in_onnx_runtime(tmp_path):
         Trainer({**tiny_config(tmp_path / "bad"), "frozen_backend": "tvm"}, device="cpu", progress=False)._attach_frozen_prefix()
 
 
+def test_bf16_runs_the_training_forward_in_bfloat16_on_the_cpu(tmp_path):
+    """`bf16: true` on the CPU: the training forward runs under bfloat16 autocast (a convolution's output is
+    bfloat16), the losses stay finite and the weights train; by default the CPU forward is float32."""
+    dtypes = {}
+    for bf16 in (True, False):
+        trainer = Trainer({**tiny_config(tmp_path / str(bf16)), "bf16": bf16}, device="cpu", progress=False)
+        seen = dtypes.setdefault(bf16, set())
+        conv = next(m for m in trainer.net.keypoint_head.modules() if isinstance(m, torch.nn.Conv2d))
+        conv.register_forward_hook(lambda module, inputs, output: seen.add(output.dtype) if module.training else None)
+        before = conv.weight.detach().clone()
+        trainer.run()
+        assert not torch.equal(before, conv.weight.detach())
+        rows = list(csv.DictReader(open(tmp_path / str(bf16) / "log.csv")))
+        assert rows and all(float(r["loss_loss"]) == float(r["loss_loss"]) for r in rows)  # finite, not NaN
+    assert dtypes[True] == {torch.bfloat16} and dtypes[False] == {torch.float32}
+    assert not Trainer(tiny_config(tmp_path / "default"), device="cpu", progress=False).bf16
+
+
 def test_a_log_of_an_older_version_gains_the_new_columns_without_misaligning(tmp_path):
     log = tmp_path / "log.csv"
     _append_row(log, {"step": 250, "val_add_auc": 3.4})
