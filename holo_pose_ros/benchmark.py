@@ -1,6 +1,7 @@
 """Speed of the deployed pipeline on generated frames, stage by stage: Image message -> RGB, localization (the
 whole first pass), crop and network (the crop pass, and the close-ups' when on), the heads' forward kinematics, the
-lifter, the fit, output messages. Latencies in milliseconds (p50 / p95 / max), frames per second, GFLOPs of one network pass (torch's FlopCounterMode), parameters, peak resident memory. ROS-free
+lifter, the fit, output messages. Latencies in milliseconds (p50 / p95 / max), frames per second, GFLOPs of one
+network pass (torch's FlopCounterMode), parameters, peak resident memory. ROS-free
 (message types only, through msg_adapters)."""
 
 from __future__ import annotations

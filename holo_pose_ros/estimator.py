@@ -297,7 +297,7 @@ class Estimator:
         H, W = image.shape[:2]
         if uv_hint is None:
             start = time.perf_counter()
-            presence, uv_hint = self.localize(image, K)  # all of it 'localize': 'crop' and 'network' are the crop pass's
+            presence, uv_hint = self.localize(image, K)  # all 'localize': 'crop', 'network' are the crop pass's
             timings["localize"] = (time.perf_counter() - start) * 1e3
             if presence < self.min_confidence:
                 return None

@@ -147,7 +147,8 @@ class _State:
             return other
         if not take.any():
             return self
-        return _State(*(a if a is None or f.name == "weights" else np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+        pick = lambda a, b: np.where(take.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)  # noqa: E731
+        return _State(*(a if a is None or f.name == "weights" else pick(a, b)
                         for f, a, b in ((f, getattr(self, f.name), getattr(other, f.name)) for f in fields(self))))
 
 
@@ -439,7 +440,8 @@ class Fitter:
                 *self.tree.compiled_arrays, K, uv_c, loss, scale, min_depth, depth_points, prior, depth_precision,
                 depth_m, self.lower, self.upper, int(cfg["iterations"]), float(cfg["damping_init"]),
                 float(cfg["damping_up"]), float(cfg["damping_down"]), float(cfg["damping_min"]),
-                float(cfg["damping_max"]), float(cfg["relative_tolerance"]), float(cfg["absolute_tolerance_px2"]) * W_all)
+                float(cfg["damping_max"]), float(cfg["relative_tolerance"]),
+                float(cfg["absolute_tolerance_px2"]) * W_all)
             back = end > begin                          # never worse than the start itself (see below)
             q_f, R_f, t_f = (np.where(back.reshape((-1,) + (1,) * (a.ndim - 1)), a, f)
                              for a, f in ((q, q_f), (R, R_f), (t, t_f)))
