@@ -121,39 +121,39 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "holo_pose_ros" / "onnx"
 
 
-def cached_export(net: HolisticNet, model: str | Path, localize_size: int | None = None) -> Path:
-    """The ONNX export of `model` (a shipped name or a card/weights path; `net` is its loaded network), made once
-    and reused: the file name carries the hash of card and weights and the package version, so new weights or new
-    network code never run a stale graph. With `localize_size` (px): the export of its 2D-only localize pass at
-    that input instead."""
-    card_path, card = read_card(model)
+def _cached(card_path: Path, card: dict, name: str, export) -> Path:
+    """The cached ONNX file of a card: named `name`, the package version and the hash of card and weights, so new
+    weights or new code never run a stale graph; `export(path)` writes it when missing."""
     digest = hashlib.sha256(card_path.read_bytes())
     digest.update((card_path.parent / card["weights"]).read_bytes())
-    part = "" if localize_size is None else f"-localize{int(localize_size)}"
-    path = cache_dir() / f"{card['robot']}-{card['model']['name']}{part}-{__version__}-{digest.hexdigest()[:16]}.onnx"
+    path = cache_dir() / f"{name}-{__version__}-{digest.hexdigest()[:16]}.onnx"
     if not path.is_file():
         LOG.info("exporting %s to ONNX (once): %s", card_path, path)
-        if localize_size is None:
-            export_onnx(net, path)
-        else:
-            export_localizer(net, int(localize_size), path)
+        export(path)
     return path
 
 
+def cached_export(net: HolisticNet, model: str | Path, localize_size: int | None = None) -> Path:
+    """The ONNX export of `model` (a shipped name or a card/weights path; `net` is its loaded network), made once
+    and reused (`_cached`). With `localize_size` (px): the export of its 2D-only localize pass at that input
+    instead."""
+    card_path, card = read_card(model)
+    part = "" if localize_size is None else f"-localize{int(localize_size)}"
+    if localize_size is None:
+        export = lambda path: export_onnx(net, path)  # noqa: E731
+    else:
+        export = lambda path: export_localizer(net, int(localize_size), path)  # noqa: E731
+    return _cached(card_path, card, f"{card['robot']}-{card['model']['name']}{part}", export)
+
+
 def cached_lifter_export(lifter: torch.nn.Module, card_path: str | Path) -> Path:
-    """The ONNX export of the lifter whose card is `card_path` (`lifter` is it, loaded), made once and reused, keyed
-    like cached_export by the hash of card and weights and the package version."""
+    """The ONNX export of the lifter whose card is `card_path` (`lifter` is it, loaded), made once and reused
+    (`_cached`)."""
     from holo_pose_ros.model.cards import read_card_file
     from holo_pose_ros.model.lifter import resolve_lifter
 
     card_path = resolve_lifter(card_path)
-    digest = hashlib.sha256(card_path.read_bytes())
-    digest.update((card_path.parent / read_card_file(card_path)["weights"]).read_bytes())
-    path = cache_dir() / f"{card_path.stem}-{__version__}-{digest.hexdigest()[:16]}.onnx"
-    if not path.is_file():
-        LOG.info("exporting %s to ONNX (once): %s", card_path, path)
-        export_lifter(lifter, path)
-    return path
+    return _cached(card_path, read_card_file(card_path), card_path.stem, lambda path: export_lifter(lifter, path))
 
 
 def has_cuda_provider() -> bool:
