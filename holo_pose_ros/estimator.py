@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 from holo_pose_ros.geometry.camera import in_image, project
 from holo_pose_ros.geometry.crop import (CROP_MARGIN, MIN_CLOSE_UP_POINTS, crop_affine, crop_box_from_keypoints,
@@ -186,6 +187,12 @@ class Estimator:
                 kwargs[key] = bool(validated)
         if kwargs.get("localize_size") is None:
             kwargs["localize_size"] = (card.get("estimator") or {}).get("localize_size")
+        card_fit = (card.get("estimator") or {}).get("fit_config")
+        if card_fit:  # the fit settings its validation chose (e.g. the depth prior's weight), under any given
+            given = kwargs.get("fit_config")
+            if given is not None and not isinstance(given, dict):
+                given = yaml.safe_load(Path(given).read_text()) or {}
+            kwargs["fit_config"] = {**card_fit, **(given or {})}
         lifter_card = None  # the lifter this loads (one given in kwargs runs in torch)
         if "lifter" not in kwargs:  # the card's lifter; a run's card names none: the robot's shipped one
             from holo_pose_ros.model.cards import resolve_model

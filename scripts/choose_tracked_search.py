@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     net, robot, _ = load_model(card_path)
     lifter = load_lifter(card_path.parent / card["lifter"])
-    card["estimator"] = {**estimator_card, **tracked_search_choice(net, robot, lifter, args.video, args.min_gain)}
+    card["estimator"] = {**estimator_card, **tracked_search_choice(net, robot, lifter, args.video, args.min_gain,
+                                                                         estimator_card.get("fit_config"))}
     rewrite_card(card_path, card)
     print(f"rewrote {card_path}: estimator.parts_tracked = {card['estimator']['parts_tracked']}")
     return 0

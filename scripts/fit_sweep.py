@@ -1,6 +1,6 @@
 """Compare settings of the estimator's kinematic fit on a generated validation folder (never a test set): for each
-variant of config/fit_sweep.yaml, the fitted ADD AUC, median and mean ADD, mean joint error, the root keypoint's
-depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
+variant of config/fit_sweep.yaml (its `fit` over the model card's `estimator.fit_config`), the fitted ADD AUC,
+median and mean ADD, mean joint error, the root keypoint's depth error (signed median and median of its size) and the fit's median time, with the feed-forward AUC for
 reference. The same network detections feed every variant. A variant's `evidence` swaps parts of the
 detections for the truth (config/error_budget.yaml: what each part of the 2D and depth error costs); its
 `silhouette` (default: the model card's, off unless it says so) fits the detection's robot mask too (a model with a mask, or `evidence.mask:
@@ -30,6 +30,7 @@ from holo_pose_ros.estimator import Detection, Estimator
 from holo_pose_ros.evaluation.detection import ground_truth_fit_keypoints
 from holo_pose_ros.evaluation.metrics import add_auc
 from holo_pose_ros.fitting import Fitter
+from holo_pose_ros.model.cards import read_card
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     meshes = load_link_meshes(estimator.fitter.robot) if any(v.get("silhouette") for v in variants) else None
     model_silhouette, model_parts = estimator.silhouette, estimator.parts
     model_min_weight = estimator.min_keypoint_confidence
+    card_fit = (read_card(args.model)[1].get("estimator") or {}).get("fit_config") or {}  # a variant's `fit` on top
     n_keypoints = estimator.robot.n_keypoints
     truncated = np.array([np.count_nonzero(f.in_image) <= n_keypoints - 3 for f, _ in detections])
     print(f"| variant | fitted AUC | median / mean ADD mm | joints deg | root depth error mm (median, median abs) "
@@ -62,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         estimator.silhouette = bool(v.get("silhouette", model_silhouette))
         estimator.off_image_evidence = bool(v.get("off_image_evidence", True))
         estimator.parts = bool(v.get("parts", model_parts))
-        estimator.fitter = Fitter(estimator.fitter.robot, v.get("fit") or {},
+        estimator.fitter = Fitter(estimator.fitter.robot, {**card_fit, **(v.get("fit") or {})},
                                   meshes=meshes if estimator.silhouette else None)
         add, add_ff, joints, depth, ms = [], [], [], [], []
         rng = np.random.default_rng(0)

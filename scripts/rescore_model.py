@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     estimator_card = card.get("estimator") or {}
     name = card_path.stem if card_path.parent.resolve() == weights_dir().resolve() else str(card_path)
     metrics = score_tests(net, robot, name, lifter, estimator_card.get("fit"), bool(estimator_card.get("parts")),
-                          args.test, bool(estimator_card.get("close_ups")))
+                          args.test, bool(estimator_card.get("close_ups")), estimator_card.get("fit_config"))
     tests = {**(card.get("test") or {}), **metrics} if args.keep_other_looks else metrics
     card = {**card, "test": tests}
     shift = domain_shift(tests)

@@ -6,7 +6,8 @@ lifter ships beside it (<name>_lifter.*, named in the card) and each test set al
 A test folder of the unseen look (config/generate/unseen.yaml) also becomes the card's `domain_shift` figure.
 The validation folders choose the default method (`estimator.fit`) and whether the fit searches by parts
 (`estimator.parts`, fitting/parts.py) and, for a run trained with close-up views, whether it adds the close-up pass
-(`estimator.close_ups`); the tests and their ablation then run with that choice. With the search
+(`estimator.close_ups`), and the weight of the fit's depth prior (`estimator.fit_config`,
+scripts/choose_depth_prior.py); the tests and their ablation then run with that choice. With the search
 and `--validation-video` (generated videos, config/generate/video.yaml), tracking them chooses whether tracked
 frames search too (`estimator.parts_tracked`; scripts/choose_tracked_search.py does it for a shipped card).
 
@@ -25,6 +26,8 @@ import sys
 from pathlib import Path
 
 import torch
+
+from choose_depth_prior import depth_prior_choice
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import SETTINGS_FILE
@@ -63,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracked-search-min-gain", type=float, default=TRACKED_SEARCH_MIN_GAIN, metavar="AUC",
                         help="AUC points the search on tracked frames must gain on the videos to be chosen "
                              f"(default {TRACKED_SEARCH_MIN_GAIN}: it halves the tracking frame rate)")
+    parser.add_argument("--depth-prior-weights", default="3,5,10,20,30", metavar="W,W,...",
+                        help="the grid the validation folders choose the fit's depth prior weight from "
+                             "(scripts/choose_depth_prior.py; '' keeps config/fitting.yaml's)")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
     lifter = load_lifter(args.lifter) if args.lifter else None
@@ -93,14 +99,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"default: {'fitted' if fit else 'feed-forward'}{' by parts' if extra['estimator']['parts'] else ''}")
         if fit and trained_with_close_ups(card):
             extra["estimator"].update(close_ups_choice(net, robot, lifter, args.validation, extra["estimator"]))
+        if fit and args.depth_prior_weights:
+            chosen = extra["estimator"]
+            choice = depth_prior_choice(Estimator(net, robot, lifter=lifter, fit=True, parts=chosen["parts"],
+                                                  close_ups=bool(chosen.get("close_ups"))),
+                                        args.validation, [float(w) for w in args.depth_prior_weights.split(",")])
+            extra["estimator"].update(fit_config={"depth_prior_weight": choice.pop("depth_prior_weight")}, **choice)
         if extra["estimator"]["parts"] and args.validation_video:
             extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video,
-                                                            args.tracked_search_min_gain))
+                                                            args.tracked_search_min_gain,
+                                                            extra["estimator"].get("fit_config")))
         elif args.validation_video:
             print("validation videos not tracked: the search by parts is off, so tracked frames fit plainly anyway")
     fit, parts = extra.get("estimator", {}).get("fit"), bool(extra.get("estimator", {}).get("parts"))
-    metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test,
-                          bool(extra.get("estimator", {}).get("close_ups")))
+    chosen = extra.get("estimator", {})
+    metrics = score_tests(net, robot, args.name, lifter, fit, parts, args.test, bool(chosen.get("close_ups")),
+                          chosen.get("fit_config"))
     if args.log:
         run = run_folder(args.card).name
         (ROOT / "docs" / "training_logs").mkdir(parents=True, exist_ok=True)
@@ -150,17 +164,18 @@ def run_folder(card: str | Path) -> Path:
     return folder.parent if folder.name == "snapshots" else folder
 
 
-def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: float = TRACKED_SEARCH_MIN_GAIN) -> dict:
+def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: float = TRACKED_SEARCH_MIN_GAIN,
+                          fit_config: dict | None = None) -> dict:
     """The card's `estimator.parts_tracked` and its evidence: each validation video tracked (fitted by parts on
     its untracked frames) with and without the search on tracked frames; the search stays on them only where it
     raises the mean AUC by more than `min_gain_auc`. A tracked frame also starts from the previous frame's fit, so
     the search may add nothing there but time (about 20 ms a frame, half the tracking frame rate), and a 360-frame
-    video's AUC moves by a point or more between settings that hardly differ."""
+    video's AUC moves by a point or more between settings that hardly differ. `fit_config`: the card's fit settings."""
     auc = {}
     for video in videos:
         for tracked in (True, False):
             estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True, parts_tracked=tracked,
-                                  tracking=True)
+                                  tracking=True, fit_config=fit_config)
             report, _, _ = evaluate_folder(estimator, DreamReader(video, robot), depth_diagnostics=False)
             auc.setdefault(video, {})[TRACKED_ROWS[tracked]] = {"add_auc": report["add_auc"]}
     mean = {row: sum(a[row]["add_auc"] for a in auc.values()) / len(auc) for row in TRACKED_ROWS.values()}
@@ -172,14 +187,16 @@ def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: f
 
 
 def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, tests: list[str],
-                close_ups: bool = False) -> dict:
+                close_ups: bool = False, fit_config: dict | None = None) -> dict:
     """The card's `test` section: each DIR:LOOK folder scored through the deployed estimator (the report's KEPT
-    keys, depth diagnostics included) and, with a lifter, its ablation; `name` is the model as users call it."""
+    keys, depth diagnostics included; `fit_config`: the card's fit settings) and, with a lifter, its ablation;
+    `name` is the model as users call it."""
     metrics = {}
     for item in tests:
         folder, _, look = item.partition(":")
         reader = DreamReader(folder, robot)
-        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts, close_ups=close_ups)
+        estimator = Estimator(net, robot, lifter=lifter, fit=fit, parts=parts, close_ups=close_ups,
+                              fit_config=fit_config)
         report, _, _ = evaluate_folder(estimator, reader)
         metrics[look or Path(folder).name] = {
             "data": _provenance(folder, len(reader)),
@@ -191,8 +208,8 @@ def score_tests(net, robot, name: str, lifter, fit: bool | None, parts: bool, te
         print(f"{folder}: AUC {report['add_auc']:.1f}, mean ADD {report['add_mean_mm']} mm, "
               f"not found {report['n_not_found']}/{report['n_frames']}")
         if lifter is not None:
-            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts, close_ups=close_ups), reader,
-                                        depth_diagnostics=False)
+            ablation = evaluate_methods(Estimator(net, robot, lifter=lifter, parts=parts, close_ups=close_ups,
+                                                  fit_config=fit_config), reader, depth_diagnostics=False)
             print(format_ablation(ablation))
             metrics[look or Path(folder).name]["ablation"] = {
                 "command": f"holo-pose evaluate --model {name} --data {folder} --ablation",

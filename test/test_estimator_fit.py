@@ -61,6 +61,37 @@ def test_the_default_method_is_the_one_the_card_validated():
     assert Estimator.from_model("kuka", parts=False).parts is False
 
 
+def test_the_cards_fit_settings_reach_the_fitter_under_the_callers(tmp_path):
+    """A card's `estimator.fit_config` (fit settings its validation chose, e.g. the depth prior's weight) is what the
+    fitter runs with; a `fit_config` given by the caller wins key by key; a card without one fits with
+    config/fitting.yaml."""
+    import shutil
+
+    import yaml
+
+    from holo_pose_ros.fitting.solver import load_fitting_config
+    from holo_pose_ros.model.cards import read_card
+
+    defaults = load_fitting_config(None)
+    card_path, card = read_card("kuka")
+    shutil.copy(card_path.parent / card["weights"], tmp_path / card["weights"])
+    shutil.copy(card_path.parent / card["lifter"], tmp_path / card["lifter"])
+    lifter_weights = yaml.safe_load((card_path.parent / card["lifter"]).read_text())["weights"]
+    shutil.copy(card_path.parent / lifter_weights, tmp_path / lifter_weights)
+    estimator = {k: v for k, v in card["estimator"].items() if k != "fit_config"}
+    plain = {**card, "estimator": estimator}
+    chosen = {**card, "estimator": {**estimator, "fit_config": {"depth_prior_weight": 4.0, "iterations": 7}}}
+    (tmp_path / "plain.yaml").write_text(yaml.safe_dump(plain, sort_keys=False))
+    (tmp_path / "chosen.yaml").write_text(yaml.safe_dump(chosen, sort_keys=False))
+    assert Estimator.from_model(tmp_path / "plain.yaml").fitter.config == defaults
+    config = Estimator.from_model(tmp_path / "chosen.yaml").fitter.config
+    assert (config["depth_prior_weight"], config["iterations"]) == (4.0, 7)
+    assert {k: v for k, v in config.items() if k not in ("depth_prior_weight", "iterations")} == \
+        {k: v for k, v in defaults.items() if k not in ("depth_prior_weight", "iterations")}
+    config = Estimator.from_model(tmp_path / "chosen.yaml", fit_config={"depth_prior_weight": 20.0}).fitter.config
+    assert (config["depth_prior_weight"], config["iterations"]) == (20.0, 7)
+
+
 def test_tracked_frames_search_by_parts_only_where_the_card_chose_it():
     """A tracked frame also starts from the previous frame's fit: it is searched by parts only with
     `parts_tracked`, which the card's tracking validation sets (scripts/choose_tracked_search.py)."""

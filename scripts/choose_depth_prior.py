@@ -1,0 +1,116 @@
+"""Choose, for a shipped fitted model, the weight of the fit's depth prior (DepthNet's root depth pulling the fitted
+depth; config/fitting.yaml `depth_prior_weight`) on generated validation folders (never a test set): each folder
+detected once, fitted with every weight of the grid, the mean fitted ADD AUC over the folders decides (a tie within
+0.05 goes to the higher mean on the unseen look's folders, the stand-in for a user's camera). Writes the card's
+`estimator.fit_config.depth_prior_weight` and its evidence (`depth_prior_validation`: the mean and each folder's AUC
+per weight, `depth_prior_chosen_on`); the weights and every other card section stay as they are. How much the prior
+should weigh depends on how good the model's DepthNet is against its 2D keypoints, so each model chooses its own;
+scripts/ship_model.py makes the same choice on its `--validation` folders when it ships a model.
+
+    python scripts/choose_depth_prior.py panda --validation data/panda_val_1012 \
+        --validation data/panda_val_unseen_1013 [--weights 3,5,10,20,30] [--frames N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.data.generator import SETTINGS_FILE
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.evaluation.metrics import add_auc
+from holo_pose_ros.fitting import Fitter
+from holo_pose_ros.model.cards import read_card, rewrite_card
+
+TIE_AUC = 0.05  # mean AUC differences below this are ties, broken by the unseen look's folders
+UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
+
+
+def folder_aucs(estimator: Estimator, folder: str, weights: list[float], frames: int | None) -> dict[float, float]:
+    """Fitted ADD AUC of one folder per depth prior weight; the network's detections computed once."""
+    reader = DreamReader(folder, estimator.robot)
+    chosen = list(reader)[:frames]
+    detections = [(f, estimator.detect(reader.load_image(f), f.K))
+                  for f in tqdm(chosen, desc=f"detect {Path(folder).name}", unit="frame")]
+    base = estimator.fitter.config
+    aucs = {}
+    for weight in weights:
+        estimator.fitter = Fitter(estimator.fitter.robot, {**base, "depth_prior_weight": float(weight)})
+        add = []
+        for frame, detection in detections:
+            fitted = estimator.estimate_detection(detection, frame.K, methods=("fitted",),
+                                                  static_camera_step=False)["fitted"]
+            add.append(np.linalg.norm(fitted.keypoints_3d - frame.keypoints_3d, axis=1).mean()
+                       if fitted.found else np.inf)
+        aucs[weight] = round(float(add_auc(np.array(add))), 2)
+    return aucs
+
+
+def is_unseen_look(folder: str) -> bool:
+    """Whether a generated folder was made with the unseen look (its generator settings file says so)."""
+    settings = Path(folder) / SETTINGS_FILE
+    return settings.exists() and Path(json.loads(settings.read_text()).get("config", "")).stem == UNSEEN_LOOK
+
+
+def choose(by_folder: dict[str, dict[float, float]]) -> tuple[float, dict[float, float]]:
+    """The weight with the highest mean AUC over the folders (ties: the higher mean on the unseen look's folders)
+    and the mean per weight."""
+    weights = list(next(iter(by_folder.values())))
+    mean = {w: float(np.mean([a[w] for a in by_folder.values()])) for w in weights}
+    unseen = [a for folder, a in by_folder.items() if is_unseen_look(folder)] or list(by_folder.values())
+    unseen_mean = {w: float(np.mean([a[w] for a in unseen])) for w in weights}
+    best = max(mean.values())
+    tied = [w for w in weights if mean[w] >= best - TIE_AUC]
+    return max(tied, key=lambda w: unseen_mean[w]), mean
+
+
+def depth_prior_choice(estimator: Estimator, folders: list[str], weights: list[float],
+                       frames: int | None = None) -> dict:
+    """The card's `estimator` entries of the choice: `fit_config.depth_prior_weight` (merged over the estimator's
+    card's other fit settings by the caller), `depth_prior_chosen_on` and `depth_prior_validation`; prints the
+    table."""
+    by_folder = {folder: folder_aucs(estimator, folder, weights, frames) for folder in folders}
+    chosen, mean = choose(by_folder)
+    print("| depth prior weight | mean AUC | " + " | ".join(Path(f).name for f in by_folder) + " |")
+    print("|---:|---:|" + "---:|" * len(by_folder))
+    for w in weights:
+        print(f"| {w:g} | {mean[w]:.2f} | " + " | ".join(f"{a[w]:.1f}" for a in by_folder.values()) + " |")
+    return {"depth_prior_weight": chosen, "depth_prior_chosen_on": list(folders),
+            "depth_prior_validation": {w: {"mean_add_auc": round(mean[w], 2), "by_folder": {
+                f: a[w] for f, a in by_folder.items()}} for w in weights}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("name", help="a shipped model's name (panda) or its card's path")
+    parser.add_argument("--validation", action="append", required=True, help="generated validation folder, repeatable")
+    parser.add_argument("--weights", default="3,5,10,20,30", help="the grid of depth prior weights")
+    parser.add_argument("--frames", type=int, default=None, help="the first N frames of each folder (default: all)")
+    parser.add_argument("--backend", default="onnxruntime", choices=("torch", "onnxruntime"))
+    args = parser.parse_args(argv)
+    card_path, card = read_card(args.name)
+    estimator_card = card.get("estimator") or {}
+    if not estimator_card.get("fit") or "lifter" not in card:
+        print(f"error: {card_path} is not a fitted model (estimator.fit and a lifter): no depth prior to weigh",
+              file=sys.stderr)
+        return 1
+    weights = [float(w) for w in args.weights.split(",")]
+    estimator = Estimator.from_model(card_path, backend=args.backend)
+    choice = depth_prior_choice(estimator, args.validation, weights, args.frames)
+    chosen = choice.pop("depth_prior_weight")
+    card["estimator"] = {**estimator_card,
+                         "fit_config": {**(estimator_card.get("fit_config") or {}), "depth_prior_weight": chosen},
+                         **choice}
+    rewrite_card(card_path, card)
+    print(f"rewrote {card_path}: estimator.fit_config.depth_prior_weight = {chosen:g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
