@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from choose_depth_prior import depth_prior_choice
+from choose_depth_prior import UNSEEN_LOOK, depth_prior_choice
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import SETTINGS_FILE
@@ -41,7 +41,6 @@ KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "a
         "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px",
         "depth_diagnostics", "truncation", "apparent_size")
 ROOT = Path(__file__).resolve().parent.parent
-UNSEEN_LOOK = "unseen"  # config/generate/unseen.yaml: never named by a training config
 BY_PARTS = "fitted by parts"  # the validation's fourth row: the fit searched by parts (fitting/parts.py)
 TRACKED_ROWS = {True: "by parts on every frame", False: "by parts on untracked frames"}  # tracking validation
 TRACKED_SEARCH_MIN_GAIN = 1.0  # AUC points the search on tracked frames must gain on the validation videos to stay
