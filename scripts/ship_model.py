@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--depth-prior-weights", default="3,5,10,20,30", metavar="W,W,...",
                         help="the grid the validation folders choose the fit's depth prior weight from "
                              "(scripts/choose_depth_prior.py; '' keeps config/fitting.yaml's)")
+    parser.add_argument("--known-joints-depth-prior-weights", default="0,1,3,10,30", metavar="W,W,...",
+                        help="the grid the same folders choose that weight from when the joints are known (the "
+                             "calibration mode; '' keeps depth_prior_weight for it)")
     args = parser.parse_args(argv)
     net, robot, card = load_model(args.card)
     lifter = load_lifter(args.lifter) if args.lifter else None
@@ -102,8 +105,10 @@ def main(argv: list[str] | None = None) -> int:
             chosen = extra["estimator"]
             choice = depth_prior_choice(Estimator(net, robot, lifter=lifter, fit=True, parts=chosen["parts"],
                                                   close_ups=bool(chosen.get("close_ups"))),
-                                        args.validation, [float(w) for w in args.depth_prior_weights.split(",")])
-            extra["estimator"].update(fit_config={"depth_prior_weight": choice.pop("depth_prior_weight")}, **choice)
+                                        args.validation, [float(w) for w in args.depth_prior_weights.split(",")],
+                                        known_joints_weights=[float(w) for w in
+                                                              args.known_joints_depth_prior_weights.split(",") if w])
+            extra["estimator"].update(**choice)
         if extra["estimator"]["parts"] and args.validation_video:
             extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video,
                                                             args.tracked_search_min_gain,

@@ -1,7 +1,7 @@
 """scripts/choose_depth_prior.py on a copy of the shipped Kuka card and frames generated here: it writes the
-weight with the best mean AUC over the folders, its evidence per folder, and leaves the weights and every other
-card section as they were; the estimator then fits with that weight. A tie goes to the unseen look's folders;
-a card that does not fit is refused with the reason."""
+weight with the best mean AUC over the folders (with --known-joints, the calibration mode's too), its evidence per
+folder, and leaves the weights and every other card section as they were; the estimator then fits with those
+weights. A tie goes to the unseen look's folders; a card that does not fit is refused with the reason."""
 
 from __future__ import annotations
 
@@ -44,8 +44,8 @@ def test_the_best_weight_is_written_with_its_evidence_and_nothing_else_moves(tmp
         folder = tmp_path / f"kuka_{look}"
         generate("kuka", 3, folder, seed=seed, workers=1, config=look, progress=False)
         folders += ["--validation", str(folder)]
-    result = subprocess.run([sys.executable, SCRIPT, str(card), *folders, "--weights", "3,30", "--backend", "torch"],
-                            capture_output=True, text=True, env=ENV, timeout=600)
+    result = subprocess.run([sys.executable, SCRIPT, str(card), *folders, "--weights", "3,30", "--known-joints",
+                             "0,30", "--backend", "torch"], capture_output=True, text=True, env=ENV, timeout=600)
     assert result.returncode == 0, result.stderr
     after = yaml.safe_load(card.read_text())
     chosen = after["estimator"]["fit_config"]["depth_prior_weight"]
@@ -57,10 +57,16 @@ def test_the_best_weight_is_written_with_its_evidence_and_nothing_else_moves(tmp
     for w, e in evidence.items():
         assert abs(sum(e["by_folder"].values()) / 2 - e["mean_add_auc"]) < 0.01
     assert {k: v for k, v in after.items() if k != "estimator"} == {k: v for k, v in before.items() if k != "estimator"}
-    written = ("fit_config", "depth_prior_validation", "depth_prior_chosen_on")
+    known = after["estimator"]["known_joints_depth_prior_validation"]
+    assert set(known) == {0.0, 30.0}
+    assert after["estimator"]["fit_config"]["known_joints_depth_prior_weight"] == choose(
+        {folder: {w: e["by_folder"][folder] for w, e in known.items()} for folder in folders[1::2]})[0]
+    written = ("fit_config", "depth_prior_validation", "depth_prior_chosen_on", "known_joints_depth_prior_validation")
     assert {k: v for k, v in after["estimator"].items() if k not in written} == \
         {k: v for k, v in before["estimator"].items() if k not in written}
-    assert Estimator.from_model(card).fitter.config["depth_prior_weight"] == chosen
+    config = Estimator.from_model(card).fitter.config
+    assert (config["depth_prior_weight"], config["known_joints_depth_prior_weight"]) == \
+        (chosen, after["estimator"]["fit_config"]["known_joints_depth_prior_weight"])
     assert f"depth_prior_weight = {chosen:g}" in result.stdout
 
 

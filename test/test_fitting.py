@@ -269,6 +269,35 @@ def test_depth_prior_corrects_detections_shrunk_about_their_centre(models, gener
     assert np.median(errors[True]) < 0.5 * np.median(errors[False])
 
 
+def test_the_known_joints_weight_weighs_the_depth_prior_only_when_the_joints_are_known(models, generator_config):
+    """`known_joints_depth_prior_weight` (the calibration mode's) replaces depth_prior_weight in a fit with known
+    joints: at 0 the shrunk points of the test above put the robot exactly where they do without a prior, at null
+    the prior pulls as before; a fit of the joints too is the same whatever that weight."""
+    model = model_of(models, "panda")
+    fitters = {w: Fitter(model, {"known_joints_depth_prior_weight": w}) for w in (None, 0.0)}
+    rng = np.random.default_rng(16)
+    errors = {False: [], True: []}
+    for _ in range(8):
+        problem = sample_problem(fitters[None].tree, fitters[None].lower, fitters[None].upper, generator_config, rng)
+        centre = problem.uv.mean(0)
+        uv = centre + 0.96 * (problem.uv - centre)
+        z_true = fitters[None].prior_depth(problem.q, problem.T_cam_base)
+        depth = {}
+        for w, fitter in fitters.items():
+            for prior in (False, True):
+                result = fitter.fit(uv, np.ones(len(uv)), problem.K, problem.q[None], problem.T_cam_base[None],
+                                    known_joints=problem.q, depth_prior_m=z_true if prior else None)
+                depth[w, prior] = fitter.prior_depth(result.q, result.T_cam_base)
+        assert depth[0.0, True] == pytest.approx(depth[0.0, False], abs=1e-9)
+        for prior in (False, True):
+            errors[prior].append(abs(depth[None, prior] - z_true))
+        q0 = np.clip(problem.q + 0.1, fitters[None].lower, fitters[None].upper)
+        free = [f.fit(uv, np.ones(len(uv)), problem.K, q0[None], problem.T_cam_base[None], depth_prior_m=z_true)
+                for f in fitters.values()]
+        assert np.array_equal(free[0].q, free[1].q) and np.array_equal(free[0].T_cam_base, free[1].T_cam_base)
+    assert np.median(errors[True]) < 0.5 * np.median(errors[False])
+
+
 def test_base_prior_pulls_the_base_pose_towards_it(models, generator_config):
     """Joints and base fitted to noisy 2D (2 px): a base prior at the true pose takes most of the base's error
     away; a tight prior 5 cm off holds the base there; one of sigma 10 m changes nothing. Invalid priors are

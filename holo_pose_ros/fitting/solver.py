@@ -406,7 +406,9 @@ class Fitter:
         prior = self._prior_precision * W                                      # (J,) per unit of (q - q0)^2
         nq = 0 if pose_only else J
 
-        depth_precision = 0.0 if depth_prior_m is None else W * cfg["depth_prior_weight"] / cfg["depth_prior_sigma_m"] ** 2
+        depth_weight = cfg["depth_prior_weight"] if not pose_only or cfg["known_joints_depth_prior_weight"] is None \
+            else cfg["known_joints_depth_prior_weight"]
+        depth_precision = 0.0 if depth_prior_m is None else W * float(depth_weight) / cfg["depth_prior_sigma_m"] ** 2
         depth_m = 0.0 if depth_prior_m is None else float(depth_prior_m)
         if base_prior is not None:
             R_prior = np.asarray(base_prior.T_cam_base, float)[:3, :3]
