@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import warnings
 import time
 from pathlib import Path
 
@@ -125,6 +126,10 @@ class Trainer:
         # the training forward under bfloat16 autocast (losses in float32): on GPUs always; on a CPU with AVX-512 BF16
         # or AMX where the config asks (`bf16: true`; the Panda recipe's step 1.23 -> 0.90 s, docs/speed.md)
         self.bf16 = bool(cfg.get("bf16", self.cuda))
+        if self.bf16 and not self.cuda and not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+            # without native bfloat16 (an AVX2-only CPU) autocast emulates it: a step took 30-40 s instead of 1.2
+            warnings.warn("bf16: this CPU has no native bfloat16 (AVX-512 BF16 or AMX); training in float32")
+            self.bf16 = False
         torch.manual_seed(cfg.get("seed", 0))
         self.out = Path(cfg["out"])
         self.out.mkdir(parents=True, exist_ok=True)
