@@ -8,8 +8,8 @@ from __future__ import annotations
 import csv
 import math
 import os
-import warnings
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
