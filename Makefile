@@ -28,7 +28,7 @@ demo: install
 	$(VENV)/bin/holo-pose-demo --model panda --frames 12 --out $(DEMO)
 
 test: install
-	$(PY) -m pytest -q test
+	$(PY) -m pytest -q --durations=20 test
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -114,7 +114,9 @@ def benchmark(model: str | Path, data: str | Path, frames: int = 100, device: st
 
 
 def device_name(device: torch.device, threads: int) -> str:
-    """What the figures were measured on, in words: the GPU's name, or the CPU's model and thread count."""
+    """What the figures were measured on, in words: the GPU's name, or the CPU's model, its vector instructions as
+    torch uses them (AVX2 or AVX512: the same model name hides hosts whose network passes differ by a third) and
+    the thread count."""
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     model = platform.processor() or platform.machine()
@@ -123,7 +125,7 @@ def device_name(device: torch.device, threads: int) -> str:
             model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return f"cpu ({model}, {threads} threads)"
+    return f"cpu ({model}, {torch.backends.cpu.get_cpu_capability()}, {threads} threads)"
 
 
 def _summary(values: np.ndarray) -> dict[str, float]:
