@@ -54,18 +54,23 @@ def folder_aucs(estimator: Estimator, detections: Detections, weights: list[floa
     if known_joints and any(f.joints is None for f, _ in detections):
         raise ValueError(f"{detections[0][0].image_path.parent}: frames without joint states cannot choose the "
                          "known-joints weight")
-    base = estimator.fitter.config
+    original = estimator.fitter
     aucs = {}
     for weight in weights:
-        estimator.fitter = Fitter(estimator.fitter.robot, {**base, key: float(weight)})
+        estimator.fitter = Fitter(original.robot, {**original.config, key: float(weight)})
         add = []
         for frame, detection in detections:
             fitted = estimator.estimate_detection(detection, frame.K, frame.joints if known_joints else None,
                                                   methods=("fitted",), static_camera_step=False)["fitted"]
             add.append(float(add_per_frame(fitted.keypoints_3d, frame.keypoints_3d)) if fitted.found else np.inf)
         aucs[weight] = round(float(add_auc(np.array(add))), 2)
-    estimator.fitter = Fitter(estimator.fitter.robot, base)
+    estimator.fitter = original
     return aucs
+
+
+def weight_grid(text: str) -> list[float]:
+    """The weights of a comma-separated grid ("3,5,10"; "" is none)."""
+    return [float(w) for w in text.split(",") if w]
 
 
 def is_unseen_look(folder: str) -> bool:
@@ -132,10 +137,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {card_path} is not a fitted model (estimator.fit and a lifter): no depth prior to weigh",
               file=sys.stderr)
         return 1
-    weights = [float(w) for w in args.weights.split(",") if w]
     estimator = Estimator.from_model(card_path, backend=args.backend)
-    known = [float(w) for w in args.known_joints.split(",")] if args.known_joints else None
-    choice = depth_prior_choice(estimator, args.validation, weights, args.frames, known)
+    choice = depth_prior_choice(estimator, args.validation, weight_grid(args.weights), args.frames,
+                                weight_grid(args.known_joints))
     chosen = choice.pop("fit_config")
     card["estimator"] = {**estimator_card, "fit_config": {**(estimator_card.get("fit_config") or {}), **chosen},
                          **choice}

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from choose_depth_prior import UNSEEN_LOOK, depth_prior_choice
+from choose_depth_prior import UNSEEN_LOOK, depth_prior_choice, weight_grid
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import SETTINGS_FILE
@@ -105,9 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             chosen = extra["estimator"]
             choice = depth_prior_choice(Estimator(net, robot, lifter=lifter, fit=True, parts=chosen["parts"],
                                                   close_ups=bool(chosen.get("close_ups"))),
-                                        args.validation, [float(w) for w in args.depth_prior_weights.split(",")],
-                                        known_joints_weights=[float(w) for w in
-                                                              args.known_joints_depth_prior_weights.split(",") if w])
+                                        args.validation, weight_grid(args.depth_prior_weights),
+                                        known_joints_weights=weight_grid(args.known_joints_depth_prior_weights))
             extra["estimator"].update(**choice)
         if extra["estimator"]["parts"] and args.validation_video:
             extra["estimator"].update(tracked_search_choice(net, robot, lifter, args.validation_video,
