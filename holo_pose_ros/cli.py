@@ -231,7 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--n", type=int, required=True, help="number of frames")
     g.add_argument("--out", required=True, help="output folder")
     g.add_argument("--seed", type=int, default=0, help="random seed: same seed, same frames")
-    g.add_argument("--workers", type=int, default=None, help="parallel processes (default: all cores)")
+    g.add_argument("--workers", type=int, default=None,
+                   help="parallel processes (default: all cores, at most one per 16 frames)")
     g.add_argument("--width", type=int, default=640, help="image width, pixels")
     g.add_argument("--height", type=int, default=480, help="image height, pixels")
     g.add_argument("--config", default="randomized", help="generator YAML: name in config/generate or a path")

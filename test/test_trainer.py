@@ -24,7 +24,7 @@ def tiny_config(out) -> dict:
     model = {**load_model_config("lite").to_dict(), "name": "tiny", "input_size": 64, "heatmap_size": 16,
              "depth_bins": 8, "deconv_channels": 16, "regressor_hidden": 32}
     return {"robot": "panda", "model": model, "generator": "randomized", "out": str(out), "seed": 3, "batch_size": 4,
-            "num_workers": 0,
+            "num_workers": 0, "depth_calibration_views": 16,
             "stages": [{"name": "depth", "steps": 2, "lr": 1e-3, "warmup_steps": 1, "losses": {"depth": 1.0}},
                        {"name": "full", "steps": 4, "lr": 1e-3, "warmup_steps": 1, "losses": WEIGHTS}],
             "validation": {"every_steps": 2, "frames": 3, "seed": 77}}

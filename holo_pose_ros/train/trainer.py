@@ -313,7 +313,7 @@ class Trainer:
                 if self.rank == 0:
                     print(f"warm start from {self.cfg['init_from']}: {copied} tensors copied, {fresh} left as initialized")
             if not self.cfg.get("train_only"):  # a train_only run keeps its donor's DepthNet scale, like all else
-                lam = self.calibrate_depth_scale()
+                lam = self.calibrate_depth_scale(int(self.cfg.get("depth_calibration_views", 256)))
                 if self.rank == 0:
                     print(f"DepthNet lambda_0 = {lam:.3f} (median d / d_c of rendered crops)")
         self._attach_frozen_prefix()
