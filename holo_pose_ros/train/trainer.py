@@ -167,7 +167,7 @@ class Trainer:
                                            pin_memory=self.cuda, persistent_workers=False,
                                            multiprocessing_context="spawn" if workers else None, drop_last=True)
 
-    def calibrate_depth_scale(self, n: int = 256) -> float:
+    def calibrate_depth_scale(self, n: int) -> float:
         """Set DepthNet's lambda_0 to the median of d / d_c over `n` rendered crop views."""
         dataset = RenderedViews(self.cfg["robot"], SampleConfig(self.model_cfg.input_size, mode_probabilities=(1.0, 0.0, 0.0)),
                                 self.generator_cfg, seed=-1 % 2**31, length=n)
