@@ -4,13 +4,15 @@ The trainer keeps its `best.yaml` by the fit keypoints' 2D error on its own look
 what matters most: the look no training config names (config/generate/unseen.yaml, the stand-in for a user's
 camera). With `validation.snapshots: true` it also keeps every validated model (runs/<run>/snapshots/); this scores
 each of them, and optionally the shipped model as the bar, through the deployed estimator fitted by parts on the
-first `--frames` frames of each generated validation folder (never a test set), and chooses the one of the best
-mean ADD AUC over the folders (ties: the earliest), or with `--criterion median_add` the lowest median ADD averaged
-over the folders (for a robot whose AUCs are all near 0, e.g. Baxter's today, where the AUC only ranks noise). It
+first `--frames` frames of each generated validation folder (never a test set), with the fit settings of the
+robot's shipped card (`estimator.fit_config`: the depth prior's weight it deploys; `--fit-config default` for
+config/fitting.yaml's), and chooses the one of the best mean ADD AUC over the folders (ties: the earliest), or with
+`--criterion median_add` the lowest median ADD averaged over the folders (for a robot whose AUCs are all near 0,
+e.g. Baxter's today, where the AUC only ranks noise). It
 writes snapshots/choice.json and choice.png (the criterion's figure by step, one line per folder, the bar dashed)
-and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar)
-already in choice.json with the same weights (sha256), frames, lifter and folders is not scored again, so it can run
-while the run trains; a run started afresh over old snapshots is scored afresh.
+and prints the chosen card for scripts/ship_model.py. A snapshot (or the bar) already in choice.json with the same
+weights (sha256), frames, lifter, folders and fit settings is not scored again, so it can run while the run trains;
+a run started afresh over old snapshots is scored afresh.
 
     python scripts/choose_snapshot.py runs/kuka_pyramid224_cpu2 --baseline kuka \\
         --validation data/kuka_val_1012 --validation data/kuka_val_unseen_1013 --validation data/kuka_val_unseen_1014
@@ -38,12 +40,13 @@ from holo_pose_ros.model.lifter import load_lifter, shipped_lifter  # noqa: E402
 from holo_pose_ros.model.weights import load_model  # noqa: E402
 
 
-def score(card_path: Path, lifter, folders: list[str], frames: int | None) -> dict:
-    """ADD AUC and mean ADD (mm) of one model card on each folder, fitted by parts with the given (loaded) lifter."""
+def score(card_path: Path, lifter, folders: list[str], frames: int | None, fit_config: dict) -> dict:
+    """ADD AUC and mean ADD (mm) of one model card on each folder, fitted by parts with the given (loaded) lifter
+    and fit settings (over config/fitting.yaml's)."""
     net, robot, _ = load_model(card_path)
     scores = {}
     for folder in folders:
-        estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True)
+        estimator = Estimator(net, robot, lifter=lifter, fit=True, parts=True, fit_config=dict(fit_config))
         report, _, _ = evaluate_folder(estimator, DreamReader(folder, robot), limit=frames, depth_diagnostics=False,
                                        progress=False)
         scores[folder] = {"add_auc": report["add_auc"], "add_mean_mm": report["add_mean_mm"],
@@ -59,14 +62,25 @@ def weights_digest(card: str | Path) -> str:
     return file_sha256(card_path.parent / content["weights"])
 
 
-def scored_before(path: Path, frames: int, lifter: Path, folders: list[str]) -> dict:
-    """Scores of an earlier choice.json made with the same frames, lifter and folders, by weights digest (the
-    snapshots' and the bar's): a run's snapshots can be scored while it trains and only the new ones scored at its
-    end. Keyed by (weights sha256, lifter path)."""
+def shipped_fit_config(robot: str) -> dict:
+    """The fit settings that the robot's shipped card deploys (`estimator.fit_config`, e.g. its depth prior's
+    weight); {} when it has none or no model of that name ships."""
+    try:
+        _, card = read_card(robot)
+    except (FileNotFoundError, ValueError):
+        return {}
+    return dict((card.get("estimator") or {}).get("fit_config") or {})
+
+
+def scored_before(path: Path, frames: int, lifter: Path, folders: list[str], fit_config: dict) -> dict:
+    """Scores of an earlier choice.json made with the same frames, lifter, folders and fit settings, by weights
+    digest (the snapshots' and the bar's): a run's snapshots can be scored while it trains and only the new ones
+    scored at its end. Keyed by (weights sha256, lifter path)."""
     if not path.exists():
         return {}
     before = json.loads(path.read_text())
-    if (before.get("frames"), before.get("lifter"), before.get("validation")) != (frames, str(lifter), folders):
+    if (before.get("frames"), before.get("lifter"), before.get("validation"), before.get("fit_config")) != (
+            frames, str(lifter), folders, fit_config):
         return {}
     rows = [*before.get("snapshots", []), *([before["baseline"]] if before.get("baseline") else [])]
     return {(row["sha256"], row.get("lifter", str(lifter))): row["scores"] for row in rows
@@ -132,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--criterion", choices=sorted(CRITERIA), default="auc",
                         help="auc (default): the best mean ADD AUC; median_add: the lowest mean of the folders' "
                              "median ADD (for a robot whose AUCs are all near 0)")
+    parser.add_argument("--fit-config", choices=("shipped", "default"), default="shipped",
+                        help="shipped (default): score with the fit settings of the robot's shipped card (its depth "
+                             "prior's weight), as deployed; default: config/fitting.yaml's")
     args = parser.parse_args(argv)
     folder = Path(args.run) / "snapshots"
     cards = sorted(p for p in folder.glob("step_*.yaml") if int(p.stem.split("_")[1]) >= args.since)
@@ -143,14 +160,16 @@ def main(argv: list[str] | None = None) -> int:
     if lifter is None:
         print(f"error: no shipped lifter for {robot}: name one with --lifter", file=sys.stderr)
         return 1
-    done = scored_before(folder / "choice.json", args.frames, lifter, args.validation)
+    fit_config = shipped_fit_config(robot) if args.fit_config == "shipped" else {}
+    done = scored_before(folder / "choice.json", args.frames, lifter, args.validation, fit_config)
+    print(f"fit settings over config/fitting.yaml's: {fit_config or 'none'}")
     baseline = None
     if args.baseline:
         base_path, base_card = read_card(args.baseline)
         base_lifter = base_path.parent / base_card["lifter"] if "lifter" in base_card else lifter
         digest = weights_digest(base_path)
         before = done.get((digest, str(base_lifter)))
-        scores = before or score(base_path, load_lifter(base_lifter), args.validation, args.frames)
+        scores = before or score(base_path, load_lifter(base_lifter), args.validation, args.frames, fit_config)
         baseline = {"card": args.baseline, "sha256": digest, "lifter": str(base_lifter), "scores": scores,
                     **summary(scores)}
         print(f"bar {args.baseline}: mean AUC {baseline['mean_add_auc']:.2f}, median ADD "
@@ -162,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     for card in tqdm(cards, desc="snapshots", unit="model"):
         digest = weights_digest(card)
         before = done.get((digest, str(lifter)))
-        scores = before or score(card, snapshot_lifter, args.validation, args.frames)
+        scores = before or score(card, snapshot_lifter, args.validation, args.frames, fit_config)
         rows.append({"card": str(card), "step": int(card.stem.split("_")[1]), "sha256": digest, "scores": scores,
                      **summary(scores)})
         tqdm.write(f"{card.stem}: mean AUC {rows[-1]['mean_add_auc']:.2f}, median ADD "
@@ -171,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
                    + (" (scored before)" if before else ""))
     chosen = max(rows, key=lambda r: (rank(r, args.criterion), -r["step"]))
     result = {"criterion": CRITERIA[args.criterion][3], "frames": args.frames,
-              "lifter": str(lifter), "validation": args.validation, "baseline": baseline, "snapshots": rows,
+              "lifter": str(lifter), "validation": args.validation, "fit_config": fit_config, "baseline": baseline,
+              "snapshots": rows,
               "chosen": chosen["card"],
               "beats_baseline": None if baseline is None else rank(chosen, args.criterion) > rank(baseline,
                                                                                                   args.criterion)}

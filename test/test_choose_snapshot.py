@@ -3,7 +3,8 @@ and the bar (the shipped model) are scored on the same generated frames of two l
 identically, a tie goes to the earliest step and does not count as beating the bar; a run without snapshots is
 refused with the reason; by median ADD (`--criterion median_add`) the untrained model ranks below; a second run
 scores only the weights it has not scored (a new snapshot, one overwritten
-by a run started afresh), the bar included: scores are keyed by the weights' sha256, not by the snapshot's path."""
+by a run started afresh), the bar included: scores are keyed by the weights' sha256, not by the snapshot's path;
+every model is fitted with the shipped card's fit settings."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import sys
 from pathlib import Path
 
 from holo_pose_ros.data.generator import generate
+from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.model.weights import load_model, save_model
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -37,6 +39,8 @@ def test_snapshots_are_scored_against_the_bar_and_the_best_mean_is_chosen(tmp_pa
         assert row["scores"] == choice["baseline"]["scores"]
         assert all(s["n_frames"] == 3 for s in row["scores"].values())
     assert choice["chosen"].endswith("step_000250.yaml") and choice["beats_baseline"] is False
+    # scored as deployed: with the shipped card's fit settings (its depth prior's weight), recorded
+    assert choice["fit_config"] == read_card("panda")[1]["estimator"]["fit_config"] != {}
     assert (tmp_path / "run" / "snapshots" / "choice.png").stat().st_size > 10_000
     assert "does NOT beat the bar" in run.stdout
 
