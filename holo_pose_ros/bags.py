@@ -481,7 +481,8 @@ def bag_eval(bag: str | Path, model: str | Path, out: str | Path, image_topic: s
         logger.warning("%d image(s) have no ground truth at their stamp: left out of the report", no_truth)
     report, report_path = None, None
     if has_truth and results:
-        report = build_report(results, robot.spec.joint_names, robot.joint_types, robot.spec.keypoint_names)
+        report = build_report(results, robot.spec.joint_names, robot.joint_types, robot.spec.keypoint_names,
+                              robot.spec.joint_symmetry)
         report_path = out / "report.json"
         write_report(report, report_path)
     return BagEvalSummary(n_images=n_done, n_found=found, n_not_found=n_done - found - skipped, n_skipped=skipped,

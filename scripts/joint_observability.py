@@ -10,7 +10,8 @@ For every joint, over random views drawn as the generator draws them (joints wit
   the distal links are symmetric about the joint's axis (the Panda's hand and fingers): no keypoint detector can tell
   the joint from itself plus half a turn except by what little breaks the symmetry, so its error is often about
   180 degrees however good the 2D;
-- a verdict: `weak` under --weak-px-per-deg, `half-turn symmetric` under --symmetric-mm.
+- a verdict: `weak` under --weak-px-per-deg, `half-turn symmetric` under --symmetric-mm; and the period the robot
+  YAML declares (`joint_symmetry_deg`: evaluation and the joint-state monitor compare such a joint modulo it).
 With --data (a generated folder), also what a model's estimates make of it there: each joint's mean and median error,
 the share of frames over 90 degrees off and the mean error modulo half a turn.
 
@@ -80,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     problems = [sample_problem(fitter.tree, fitter.lower, fitter.upper, generator, rng) for _ in range(args.views)]
     print(f"{args.robot}: {fitter.tree.n_points} fit keypoints, {surface.n_points} surface points, {args.views} views")
-    print(f"| joint | fit keypoints it moves | px/deg (p90 of those, median view) | half-turn mm (median view) | verdict |")
-    print("|---|---:|---:|---:|---|")
+    print("| joint | fit keypoints it moves | px/deg (p90 of those, median view) | half-turn mm (median view) | verdict "
+          "| robot YAML's joint_symmetry_deg |")
+    print("|---|---:|---:|---:|---|---:|")
     for j, name in enumerate(model.joint_names):
         if model.joint_types[j] == "prismatic":
             continue
@@ -90,7 +92,9 @@ def main(argv: list[str] | None = None) -> int:
         chamfer = np.median([half_turn_chamfer_mm(surface, p.q, j, moves_surface[:, j]) for p in problems[:20]])
         verdict = ", ".join(v for v, bad in (("weak", speed < args.weak_px_per_deg),
                                               ("half-turn symmetric", chamfer < args.symmetric_mm)) if bad) or "ok"
-        print(f"| {name} | {len(moved)} | {speed:.2f} | {chamfer:.1f} | {verdict} |")
+        declared = model.spec.joint_symmetry.get(name)
+        print(f"| {name} | {len(moved)} | {speed:.2f} | {chamfer:.1f} | {verdict} | "
+              f"{f'{np.degrees(declared):g}' if declared else '-'} |")
     if args.data:
         measured_errors(args.model or args.robot, args.data, args.frames)
     return 0

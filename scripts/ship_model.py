@@ -38,8 +38,8 @@ from holo_pose_ros.model.weights import load_model, save_model
 from holo_pose_ros.resources import weights_dir
 
 KEPT = ("n_frames", "n_not_found", "add_auc", "add_mean_mm", "add_median_mm", "add_below_mm", "joint_error_deg",
-        "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps", "kp2d_dream_median_px", "kp2d_fit_median_px",
-        "depth_diagnostics", "truncation", "apparent_size")
+        "joint_error_modulo_symmetry_deg", "rotation_error_deg", "depth_error_mm", "reproj_error_px", "fps",
+        "kp2d_dream_median_px", "kp2d_fit_median_px", "depth_diagnostics", "truncation", "apparent_size")
 ROOT = Path(__file__).resolve().parent.parent
 BY_PARTS = "fitted by parts"  # the validation's fourth row: the fit searched by parts (fitting/parts.py)
 TRACKED_ROWS = {True: "by parts on every frame", False: "by parts on untracked frames"}  # tracking validation

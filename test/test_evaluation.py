@@ -146,6 +146,23 @@ def test_build_report_keys_json_and_not_found_frames(tmp_path):
     assert "ADD AUC" in format_report(report) and "robot size px" in format_report(report)
 
 
+def test_a_symmetric_joints_error_is_also_reported_modulo_its_period():
+    """A hand whose roll is off by about half a turn reads ~180 deg in joint_error_deg but ~0 modulo its symmetry."""
+    results = [frame("a", 0.0), frame("b", 0.0), frame("c", None)]
+    results[0].pred_joints[0] = math.radians(181.0)  # the true value is 0: half a turn and 1 deg
+    results[1].pred_joints[0] = math.radians(-100.0)  # 100 deg off, 80 deg modulo half a turn
+    report = build_report(results, ["j1", "finger"], ["revolute", "prismatic"], ["k0", "k1", "k2"],
+                          {"j1": math.pi})
+    assert report["joint_error_deg"]["j1"] == pytest.approx((181.0 + 100.0) / 2)
+    modulo = report["joint_error_modulo_symmetry_deg"]
+    assert modulo["j1"] == pytest.approx((1.0 + 80.0) / 2) and modulo["period_deg"] == {"j1": pytest.approx(180.0)}
+    assert "(40.50 modulo its 180 deg symmetry)" in format_report(report)
+    assert "joint_error_modulo_symmetry_deg" not in build_report(results, ["j1", "finger"],
+                                                                 ["revolute", "prismatic"], ["k0", "k1", "k2"])
+    with pytest.raises(ValueError, match="'finger' is not a revolute"):
+        build_report(results, ["j1", "finger"], ["revolute", "prismatic"], ["k0", "k1", "k2"], {"finger": 0.1})
+
+
 def test_keypoint_error_is_each_keypoints_median_over_the_frames_where_it_is_in_the_image():
     gt = np.zeros((3, 3, 2))
     pred = gt.copy()

@@ -30,6 +30,7 @@ def test_the_flange_is_flagged_and_a_model_is_scored(tmp_path):
     rows = _rows(predicted)
     flange, shoulder = rows["iiwa7_joint_7"], rows["iiwa7_joint_2"]
     assert "weak" in flange[3] and "half-turn symmetric" in flange[3]
+    assert flange[4] == "180" and shoulder[4] == "-"             # the robot YAML declares what the geometry says
     assert shoulder[3] == "ok" and float(shoulder[1]) > 4 * float(flange[1]) and float(shoulder[2]) > 10 * float(flange[2])
     assert int(flange[0]) < int(shoulder[0])                     # fewer fit keypoints ride on the flange
     scored = {name: r for name, r in _rows(measured).items() if name.startswith("iiwa7_joint_")}

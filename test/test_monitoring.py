@@ -5,12 +5,14 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 
 from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.monitoring import (ERROR, OK, WARN, JointNameMap, JointStateMonitor, JointThreshold, JointWatch,
                                       StampBuffer, StampMatcher, card_joint_errors, joint_difference, joint_kinds,
                                       joint_thresholds, parse_overrides, parse_pairs, select_by_name,
-                                      wrap_angle)
+                                      wrap_angle, wrap_to_period)
+from holo_pose_ros.resources import config_dir
 from holo_pose_ros.robots.spec import load_robot_spec
 
 MS = 1_000_000  # ns
@@ -44,6 +46,35 @@ def test_joint_difference_wraps_angles_only():
     a[3], b[3] = 7.0, 0.5
     d = joint_difference(a, b, KINDS)
     np.testing.assert_allclose(d, [math.radians(-2.0), math.radians(20.0), 0.0, 6.5], atol=1e-12)
+
+
+def test_a_symmetric_joint_is_compared_modulo_its_period():
+    # j3 looks the same after half a turn: 190 deg apart is 10 deg; 100 deg apart is -80 deg; j1 still wraps at a turn
+    a = np.radians([190.0, 0.0, 190.0, 0.0])
+    b = np.radians([0.0, 0.0, 0.0, 0.0])
+    periods = [2 * math.pi, 2 * math.pi, math.pi, 2 * math.pi]
+    np.testing.assert_allclose(np.degrees(joint_difference(a, b, KINDS, periods)), [-170.0, 0.0, 10.0, 0.0],
+                               atol=1e-9)
+    a[2] = math.radians(100.0)
+    assert math.degrees(joint_difference(a, b, KINDS, periods)[2]) == pytest.approx(-80.0)
+    w = wrap_to_period(np.linspace(-10, 10, 401), math.pi / 2)
+    assert np.all(w > -math.pi / 4) and np.all(w <= math.pi / 4 + 1e-12)
+    np.testing.assert_allclose(wrap_to_period([1.0, np.nan], 2 * math.pi)[:1], wrap_angle([1.0]))
+    # the monitor: half a turn off on the symmetric joint raises nothing, a quarter turn (beyond its WARN) does
+    joints = [JointThreshold(n, k, 0.1, 0.2, "test", math.pi if n == "j3" else 2 * math.pi)
+              for n, k in zip(NAMES, KINDS)]
+    assert joints[2].symmetric and not joints[0].symmetric
+    mon = JointStateMonitor(joints, persistence=2, now=0.0)
+    reported = np.array([0.0, 0.0, 0.5, 0.0])
+    for i in range(3):
+        mon.add_reported(NAMES, reported, i * 100 * MS, 0.1 * i)
+        mon.add_estimate(NAMES, reported + [0.0, 0.0, math.pi, 0.0], i * 100 * MS, 0.1 * i + 0.01)
+    assert mon.status(0.3).level == OK
+    for i in range(3, 6):
+        mon.add_reported(NAMES, reported, i * 100 * MS, 0.1 * i)
+        mon.add_estimate(NAMES, reported + [0.0, 0.0, math.pi + 0.15, 0.0], i * 100 * MS, 0.1 * i + 0.01)
+    status = mon.status(0.6)
+    assert status.level == WARN and status.faults == {"j3": WARN}
 
 
 def test_select_by_name_any_order_extra_missing_nonfinite_duplicates():
@@ -277,3 +308,46 @@ def test_thresholds_from_the_shipped_card_overrides_and_defaults():
         joint_thresholds(spec.joint_names, kinds, {}, overrides={"nope": 0.1})
     with pytest.raises(ValueError, match="finite and > 0"):
         joint_thresholds(spec.joint_names, kinds, {}, overrides={"panda_joint1": -1.0})
+
+
+def test_a_symmetric_joints_threshold_comes_from_its_error_modulo_the_symmetry():
+    """The Panda hand's roll (joint_symmetry_deg in the robot YAML): its threshold is 3 x the card's error modulo half a
+    turn where the card measures it, and it can warn only below a quarter turn."""
+    spec = load_robot_spec("panda")
+    assert spec.joint_symmetry == {"panda_joint7": pytest.approx(math.pi)}
+    kinds = joint_kinds(spec)
+    card = {"test": {"unseen": {"joint_error_deg": {"panda_joint7": 70.0, "panda_joint1": 30.0},
+                                "joint_error_modulo_symmetry_deg": {"panda_joint7": 20.0,
+                                                                    "period_deg": {"panda_joint7": 180.0}}},
+                     "photo": {"joint_error_deg": {"panda_joint7": 60.0, "panda_joint1": 10.0}}}}
+    measured = card_joint_errors(card, spec.joint_names, "unseen", list(spec.joint_symmetry))
+    assert measured["panda_joint7"].value == pytest.approx(math.radians(20.0)) and measured["panda_joint7"].modulo_symmetry
+    # a card without the modulo measure (the photo set here): the plain error
+    photo = card_joint_errors(card, spec.joint_names, "photo", list(spec.joint_symmetry))
+    assert photo["panda_joint7"].value == pytest.approx(math.radians(60.0)) and not photo["panda_joint7"].modulo_symmetry
+    t = {x.name: x for x in joint_thresholds(spec.joint_names, kinds, measured, factor=3.0,
+                                             periods=spec.joint_symmetry)}
+    hand = t["panda_joint7"]
+    assert hand.warn == pytest.approx(math.radians(60.0)) and hand.period == pytest.approx(math.pi)
+    assert hand.can_warn and not hand.can_error and "modulo the symmetry" in hand.source  # ERROR 120 deg > 90
+    assert not t["panda_joint1"].symmetric and t["panda_joint1"].period == pytest.approx(2 * math.pi)
+    blind = joint_thresholds(spec.joint_names, kinds, photo, factor=3.0, periods=spec.joint_symmetry)
+    assert not {x.name: x for x in blind}["panda_joint7"].can_warn  # 3 x 60 deg is beyond a quarter turn
+    with pytest.raises(ValueError, match="angular joint"):
+        joint_thresholds(spec.joint_names, kinds, {}, periods={"panda_finger_joint1": 1.0})
+    with pytest.raises(ValueError, match="not a joint"):
+        joint_thresholds(spec.joint_names, kinds, {}, periods={"nope": 1.0})
+
+
+@pytest.mark.parametrize("entry, message", [({"panda_joint9": 180}, "names 'panda_joint9', which is not one of"),
+                                            ({"panda_joint7": 0}, "0 is not in \\(0, 360\\] degrees"),
+                                            ({"panda_joint7": "half"}, "'half' is not a number"),
+                                            ([180], "must map joint names")])
+def test_a_bad_joint_symmetry_names_the_yaml_and_the_joint(tmp_path, entry, message):
+    data = yaml.safe_load((config_dir() / "robots" / "panda.yaml").read_text())
+    data["joint_symmetry_deg"] = entry
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match="robot.yaml: .*" + message):
+        load_robot_spec(path)
+

@@ -68,6 +68,19 @@ def joint_errors(pred_q: np.ndarray, gt_q: np.ndarray, joint_types: list[str]) -
     return out
 
 
+def joint_errors_modulo(pred_q: np.ndarray, gt_q: np.ndarray, joint_names: list[str],
+                        periods_rad: dict[str, float]) -> dict[str, float]:
+    """Mean |q_pred - q_gt| in degrees of each joint named in `periods_rad` (joint -> radians), the difference taken
+    modulo the joint's period (wrapped to [-period/2, period/2]): the error that remains when a joint's distal links
+    look the same after that turn (a hand's roll), so that no image can tell the rest."""
+    diff = (np.asarray(pred_q, float) - np.asarray(gt_q, float)).reshape(-1, len(joint_names))
+    out = {}
+    for name, period in periods_rad.items():
+        d = diff[:, joint_names.index(name)]
+        out[name] = float(np.degrees(np.abs(d - period * np.round(d / period)).mean())) if len(d) else float("nan")
+    return out
+
+
 def rotation_error_deg(R_pred: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     """(F,) geodesic angle of R_pred^T R_gt for (F,3,3) rotations, degrees in [0, 180]."""
     trace = np.einsum("fij,fij->f", np.asarray(R_pred, float), np.asarray(R_gt, float))

@@ -80,6 +80,21 @@ def _joint_section(results: list[FrameResult], joint_names: list[str], joint_typ
     return section | {"units": units | {"mean": "deg"}}, len(pred)
 
 
+def _joint_symmetry_section(results: list[FrameResult], joint_names: list[str], joint_types: list[str],
+                            joint_symmetry: dict[str, float]) -> dict:
+    """The joint_error_modulo_symmetry_deg dict: each symmetric joint's mean error (deg) modulo its period, and
+    `period_deg`; {} for a robot without symmetric joints. ValueError for a symmetric joint that is not angular."""
+    if not joint_symmetry:
+        return {}
+    for name in joint_symmetry:
+        if metrics.joint_unit(joint_types[joint_names.index(name)]) != "deg":
+            raise ValueError(f"joint symmetry: '{name}' is not a revolute or continuous joint")
+    pred, gt = _pairs(results, "pred_joints", "gt_joints")
+    errors = (metrics.joint_errors_modulo(pred, gt, joint_names, joint_symmetry) if len(pred)
+              else {name: float("nan") for name in joint_symmetry})
+    return errors | {"period_deg": {name: math.degrees(p) for name, p in joint_symmetry.items()}}
+
+
 def _reprojection(results: list[FrameResult]) -> np.ndarray:
     """(F_used,) mean in-image reprojection error (px, NaN without in-image GT) of found frames with a pred_uv."""
     used = [r for r in results if r.found and r.pred_uv is not None]
@@ -117,8 +132,9 @@ def _json_safe(value):
 
 
 def build_report(results: list[FrameResult], joint_names: list[str], joint_types: list[str],
-                 keypoint_names: list[str]) -> dict:
-    """The evaluation report (ADD in mm, AUC and percentages in percent, angles in deg, fps in frames/s)."""
+                 keypoint_names: list[str], joint_symmetry: dict[str, float] | None = None) -> dict:
+    """The evaluation report (ADD in mm, AUC and percentages in percent, angles in deg, fps in frames/s).
+    `joint_symmetry` (joint -> period, radians; the robot YAML's) adds each such joint's error modulo its period."""
     add, found = per_frame_add(results)
     add_stats = _stats(add[found] * 1000.0)
     joint_section, n_joint = _joint_section(results, joint_names, joint_types)
@@ -136,6 +152,8 @@ def build_report(results: list[FrameResult], joint_names: list[str], joint_types
         "add_median_mm": add_stats["median"],
         "add_below_mm": metrics.fraction_below(add, found, ADD_THRESHOLDS_MM),
         "joint_error_deg": joint_section,
+        **({"joint_error_modulo_symmetry_deg": _joint_symmetry_section(results, joint_names, joint_types,
+                                                                       joint_symmetry)} if joint_symmetry else {}),
         "rotation_error_deg": _stats(metrics.rotation_error_deg(R_pred, R_gt) if len(R_pred) else []),
         "depth_error_mm": _stats(metrics.depth_error_mm(depth_pred, depth_gt)),
         "reproj_error_px": _stats(reproj),
@@ -192,8 +210,11 @@ def format_report(report: dict) -> str:
         f"joint error mean    {_num(joints['mean'])} deg"
         + (f"  (prismatic {_num(joints['mean_mm'])} mm)" if "mean_mm" in joints else ""),
     ]
-    lines += [f"  {name:<18} {_num(joints[name])} {unit}" for name, unit in units.items()
-              if name not in ("mean", "mean_mm")]
+    modulo = report.get("joint_error_modulo_symmetry_deg") or {}
+    lines += [f"  {name:<18} {_num(joints[name])} {unit}"
+              + (f"  ({_num(modulo[name])} modulo its {modulo['period_deg'][name]:g} deg symmetry)"
+                 if name in modulo and name != "period_deg" else "")
+              for name, unit in units.items() if name not in ("mean", "mean_mm")]
     for key, label, unit in (("rotation_error_deg", "rotation error", "deg"),
                              ("depth_error_mm", "root depth error", "mm"),
                              ("reproj_error_px", "reprojection error", "px")):

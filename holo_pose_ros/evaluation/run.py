@@ -102,7 +102,7 @@ def evaluate_folder(estimator: Estimator, reader: DreamReader, known_joints: boo
         raise DreamFormatError(f"{reader.folder}: none of its {len(frames)} frames has a readable image (first: "
                                f"{reader.problems[-1][0]}: {reader.problems[-1][2]})")
     spec = robot.spec
-    report = build_report(results, spec.joint_names, robot.joint_types, spec.keypoint_names)
+    report = build_report(results, spec.joint_names, robot.joint_types, spec.keypoint_names, spec.joint_symmetry)
     report.update(summarize_2d(errors, robot.n_keypoints, n_2d, missed))
     report.update(skipped_frames(reader, skipped_before))
     if diagnose:
@@ -157,7 +157,8 @@ def evaluate_methods(estimator: Estimator, reader: DreamReader, limit: int | Non
     shared = summarize_2d(errors, robot.n_keypoints, n_2d, missed) | skipped_frames(reader, skipped_before)
     if depth_diagnostics:
         shared["depth_diagnostics"] = build_depth_diagnostics(depth_frames, method)
-    return {name: {**build_report(r, spec.joint_names, robot.joint_types, spec.keypoint_names), **shared}
+    return {name: {**build_report(r, spec.joint_names, robot.joint_types, spec.keypoint_names, spec.joint_symmetry),
+                    **shared}
             for name, r in results.items()}
 
 

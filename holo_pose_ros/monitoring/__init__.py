@@ -5,7 +5,7 @@ its thin ROS 2 node."""
 
 from holo_pose_ros.monitoring.discrepancy import ERROR, LEVEL_NAMES, OK, WARN, JointWatch, frame_level
 from holo_pose_ros.monitoring.joints import (JointNameMap, Selection, joint_difference, parse_pairs, select_by_name,
-                                             wrap_angle)
+                                             wrap_angle, wrap_to_period)
 from holo_pose_ros.monitoring.monitor import Counters, Discrepancy, EstimateUpdate, JointStateMonitor, Status
 from holo_pose_ros.monitoring.stamps import Match, StampBuffer, StampMatcher
 from holo_pose_ros.monitoring.thresholds import (JointThreshold, MeasuredError, card_joint_errors, joint_kinds,
@@ -14,6 +14,7 @@ from holo_pose_ros.monitoring.thresholds import (JointThreshold, MeasuredError, 
 __all__ = [
     "ERROR", "LEVEL_NAMES", "OK", "WARN", "JointWatch", "frame_level",
     "JointNameMap", "Selection", "joint_difference", "parse_pairs", "select_by_name", "wrap_angle",
+    "wrap_to_period",
     "Counters", "Discrepancy", "EstimateUpdate", "JointStateMonitor", "Status",
     "Match", "StampBuffer", "StampMatcher",
     "JointThreshold", "MeasuredError", "card_joint_errors", "joint_kinds", "joint_thresholds", "parse_overrides",

@@ -16,17 +16,25 @@ ANGULAR_KINDS = ("revolute", "continuous")  # URDF joint types whose positions a
 LINEAR_KINDS = ("prismatic",)
 
 
+def wrap_to_period(angle, period):
+    """`angle` (radians) wrapped to (-period/2, period/2] (`period` radians, scalar or per element); NaN stays NaN."""
+    period = np.asarray(period, dtype=np.float64)
+    return period / 2.0 - np.mod(period / 2.0 - np.asarray(angle, dtype=np.float64), period)
+
+
 def wrap_angle(angle):
     """`angle` (radians, scalar or array) wrapped to (-pi, pi]; NaN stays NaN."""
-    return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
+    return wrap_to_period(angle, 2.0 * np.pi)
 
 
-def joint_difference(a, b, kinds: Sequence[str]) -> np.ndarray:
-    """(J,) a - b per joint: wrapped to (-pi, pi] for angular joints (`kinds` as URDF joint types), plain for
-    prismatic ones (metres). NaN where either side is NaN."""
+def joint_difference(a, b, kinds: Sequence[str], periods: Sequence[float] | None = None) -> np.ndarray:
+    """(J,) a - b per joint: wrapped to (-pi, pi] for angular joints (`kinds` as URDF joint types), or to
+    (-p/2, p/2] for a joint whose `periods` entry p (radians) is less than a turn (a joint that looks the same after
+    p: the robot YAML's joint_symmetry_deg); plain for prismatic ones (metres). NaN where either side is NaN."""
     d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     angular = np.array([kind in ANGULAR_KINDS for kind in kinds], dtype=bool)
-    d[angular] = wrap_angle(d[angular])
+    period = np.full(len(kinds), 2.0 * np.pi) if periods is None else np.asarray(periods, dtype=np.float64)
+    d[angular] = wrap_to_period(d[angular], period[angular])
     return d
 
 

@@ -50,7 +50,8 @@ class Counters:
 @dataclass(frozen=True)
 class Discrepancy:
     """estimate - reported of one matched estimate: `values` (J,) in the monitor's joint order (radians wrapped to
-    (-pi, pi], metres for prismatic joints; NaN where either side has no finite position), `tag` what the caller
+    (-pi, pi], or to half the period of a symmetric joint; metres for prismatic joints; NaN where either side has no
+    finite position), `tag` what the caller
     gave with the estimate (the node: its header), offset_ns = reported stamp - estimate stamp."""
 
     stamp_ns: int
@@ -99,6 +100,7 @@ class JointStateMonitor:
         self.joints = list(joints)
         self.names = [j.name for j in self.joints]
         self.kinds = [j.kind for j in self.joints]
+        self.periods = [j.period for j in self.joints]
         self.robot_names = list(robot_names) if robot_names is not None else list(self.names)
         if len(self.robot_names) != len(self.names) or len(set(self.robot_names)) != len(self.names):
             raise ValueError("robot_names needs one distinct name per joint")
@@ -172,7 +174,7 @@ class JointStateMonitor:
                 self.unmatched_in_a_row += 1
                 continue
             estimate, tag = m.estimate
-            d = joint_difference(estimate, m.reported, self.kinds)
+            d = joint_difference(estimate, m.reported, self.kinds, self.periods)
             for watch, value in zip(self.watches, d):
                 watch.add(float(value))
             self.counters.matched += 1

@@ -1,7 +1,9 @@
 """Per-joint alarm thresholds of the monitor, from the loaded model's card: the held-out mean joint error the card
 measured (its `test:` section, `joint_error_deg`: degrees, millimetres for prismatic joints) times a factor is the
 WARN threshold, `error_factor` times that the ERROR threshold; a joint the card does not measure gets a default,
-and any joint an explicit override. Radians and metres out. Reads the card's YAML only (no torch)."""
+and any joint an explicit override. A joint that looks the same after part of a turn (the robot YAML's
+joint_symmetry_deg) is compared modulo that period, with the card's error modulo it. Radians and metres out. Reads
+the card's YAML only (no torch)."""
 
 from __future__ import annotations
 
@@ -38,17 +40,22 @@ def joint_kinds(spec: RobotSpec) -> list[str]:
 @dataclass(frozen=True)
 class MeasuredError:
     """A card's held-out mean |error| of one joint: `value` in radians (metres for prismatic joints), measured on
-    the card's test set `test_set`."""
+    the card's test set `test_set`; `modulo_symmetry`: measured modulo the joint's symmetry period (the card's
+    `joint_error_modulo_symmetry_deg`)."""
 
     value: float
     test_set: str
+    modulo_symmetry: bool = False
 
 
-def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str = "") -> dict[str, MeasuredError]:
-    """The held-out mean error per joint from the card's `test: <set>: joint_error_deg:` (per joint, with `units`).
-    `test_set` '' takes, per joint, the largest over the card's test sets (an alarm then means more than the model's
-    error on any of its held-out looks); otherwise that set only (ValueError when the card has none of that name).
-    Joints the card does not measure (or measures as NaN / null) are left out."""
+def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str = "",
+                      symmetric: Sequence[str] = ()) -> dict[str, MeasuredError]:
+    """The held-out mean error per joint from the card's `test: <set>: joint_error_deg:` (per joint, with `units`);
+    for the joints named in `symmetric` (the robot YAML's joint_symmetry_deg) the error modulo the symmetry,
+    `joint_error_modulo_symmetry_deg:`, where the card has it. `test_set` '' takes, per joint, the largest over the
+    card's test sets (an alarm then means more than the model's error on any of its held-out looks); otherwise that
+    set only (ValueError when the card has none of that name). Joints the card does not measure (or measures as
+    NaN / null) are left out."""
     tests = card.get("test") or {}
     if not isinstance(tests, Mapping):
         return {}
@@ -62,12 +69,14 @@ def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str =
         if not isinstance(joints, Mapping):
             continue
         units = joints.get("units") or {}
+        modulo = section.get("joint_error_modulo_symmetry_deg") or {}
         for name in joint_names:
-            value = joints.get(name)
-            unit = units.get(name, "deg")
+            value, unit, is_modulo = joints.get(name), units.get(name, "deg"), False
+            if name in symmetric and isinstance(modulo, Mapping) and isinstance(modulo.get(name), (int, float)):
+                value, unit, is_modulo = modulo[name], "deg", True
             if not isinstance(value, (int, float)) or not math.isfinite(value) or unit not in CARD_UNITS:
                 continue
-            measured = MeasuredError(float(value) * CARD_UNITS[unit], str(set_name))
+            measured = MeasuredError(float(value) * CARD_UNITS[unit], str(set_name), is_modulo)
             if name not in errors or measured.value > errors[name].value:
                 errors[name] = measured
     return errors
@@ -76,34 +85,51 @@ def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str =
 @dataclass(frozen=True)
 class JointThreshold:
     """A joint's alarm thresholds on |estimate - reported| (radians, metres for prismatic joints) and where the WARN
-    threshold came from ('card <set>: 3 x 0.295', 'override', 'default')."""
+    threshold came from ('card <set>: 3 x 0.295', 'override', 'default'). `period` (radians): an angular joint's
+    discrepancy is wrapped to (-period/2, period/2], a full turn unless the joint looks the same after less
+    (the robot YAML's joint_symmetry_deg: the hand's roll, half a turn)."""
 
     name: str
     kind: str
     warn: float
     error: float
     source: str
+    period: float = 2.0 * math.pi
 
     @property
     def unit(self) -> str:
         return "m" if self.kind in LINEAR_KINDS else "rad"
 
     @property
+    def symmetric(self) -> bool:
+        """True for an angular joint compared modulo less than a turn."""
+        return self.kind not in LINEAR_KINDS and self.period < 2.0 * math.pi
+
+    @property
     def can_warn(self) -> bool:
-        """False for an angular joint whose WARN threshold is pi or more: a wrapped discrepancy never exceeds it."""
-        return self.kind in LINEAR_KINDS or self.warn < math.pi
+        """False for an angular joint whose WARN threshold is half its period (pi) or more: a wrapped discrepancy
+        never exceeds it."""
+        return self.kind in LINEAR_KINDS or self.warn < self.period / 2.0
 
     @property
     def can_error(self) -> bool:
-        return self.kind in LINEAR_KINDS or self.error < math.pi
+        return self.kind in LINEAR_KINDS or self.error < self.period / 2.0
 
 
 def joint_thresholds(joint_names: Sequence[str], kinds: Sequence[str], measured: Mapping[str, MeasuredError],
                      factor: float = 3.0, error_factor: float = 2.0, default_rad: float = 0.35,
-                     default_m: float = 0.02, overrides: Mapping[str, float] | None = None) -> list[JointThreshold]:
+                     default_m: float = 0.02, overrides: Mapping[str, float] | None = None,
+                     periods: Mapping[str, float] | None = None) -> list[JointThreshold]:
     """WARN = an override, else `factor` x the card's measured error, else the default of the joint's kind;
-    ERROR = `error_factor` x WARN. ValueError for an override naming no joint or a threshold that is not > 0."""
-    overrides = dict(overrides or {})
+    ERROR = `error_factor` x WARN. `periods` (joint -> radians, the robot YAML's joint_symmetry): the joints compared
+    modulo less than a turn. ValueError for an override or period naming no joint, a period on a prismatic joint,
+    or a threshold that is not > 0."""
+    overrides, periods = dict(overrides or {}), dict(periods or {})
+    for name, period in periods.items():
+        if name not in joint_names:
+            raise ValueError(f"joint symmetry: '{name}' is not a joint of the robot YAML ({', '.join(joint_names)})")
+        if kinds[list(joint_names).index(name)] in LINEAR_KINDS or not 0.0 < period <= 2.0 * math.pi:
+            raise ValueError(f"joint symmetry: '{name}' needs an angular joint and a period in (0, 2 pi] rad")
     unknown = sorted(set(overrides) - set(joint_names))
     if unknown:
         raise ValueError(f"threshold overrides: {unknown} are not joints of the robot YAML ({', '.join(joint_names)})")
@@ -115,12 +141,13 @@ def joint_thresholds(joint_names: Sequence[str], kinds: Sequence[str], measured:
             warn, source = float(overrides[name]), "override"
         elif name in measured:
             warn = factor * measured[name].value
-            source = f"card {measured[name].test_set}: {factor:g} x {measured[name].value:.4g}"
+            source = (f"card {measured[name].test_set}: {factor:g} x {measured[name].value:.4g}"
+                      + (" modulo the symmetry" if measured[name].modulo_symmetry else ""))
         else:
             warn, source = (default_m if kind in LINEAR_KINDS else default_rad), "default"
         if not (math.isfinite(warn) and warn > 0):
             raise ValueError(f"{name}: threshold {warn} ({source}) must be finite and > 0")
-        out.append(JointThreshold(name, kind, warn, error_factor * warn, source))
+        out.append(JointThreshold(name, kind, warn, error_factor * warn, source, periods.get(name, 2.0 * math.pi)))
     return out
 
 

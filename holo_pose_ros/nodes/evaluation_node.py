@@ -224,7 +224,7 @@ class EvaluationNode(Node):
             self.get_logger().error("no ground truth received: no report")
             return
         self.report = build_report(self.results, self.robot.spec.joint_names, self.robot.joint_types,
-                                   self.robot.spec.keypoint_names)
+                                   self.robot.spec.keypoint_names, self.robot.spec.joint_symmetry)
         if self.report_path:
             write_report(self.report, self.report_path)
         self._report_pub.publish(String(data=json.dumps(self.report)))

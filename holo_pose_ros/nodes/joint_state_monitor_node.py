@@ -9,7 +9,9 @@ In:  `estimate_topic` (sensor_msgs/JointState, the estimator's ~/joint_states, s
      `reported_topic` (sensor_msgs/JointState, the robot's own names; optional). Best effort, so that reliable and
      best-effort publishers both connect.
 Out: ~/discrepancy             sensor_msgs/JointState: position = estimate - reported per joint (radians wrapped to
-                               (-pi, pi], metres for prismatic joints; NaN where either side has no position), the
+                               (-pi, pi], or to half the period of a joint that looks the same after part of a turn:
+                               the robot YAML's joint_symmetry_deg, e.g. the Panda hand's roll, (-pi/2, pi/2];
+                               metres for prismatic joints; NaN where either side has no position), the
                                robot's joint names, the image's header; one per matched estimate;
      ~/joint_states_estimated  sensor_msgs/JointState: the estimate with the robot's joint names and the image's
                                header, so that a robot that shares nothing can be used like a joint_state_publisher;
@@ -18,6 +20,7 @@ Out: ~/discrepancy             sensor_msgs/JointState: position = estimate - rep
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -98,11 +101,11 @@ class JointStateMonitorNode(Node):
             self.card_path, card = read_card(p["model"])
             if card.get("robot") != spec.name:
                 raise ValueError(f"model '{p['model']}' is for robot '{card.get('robot')}', but robot:={p['robot']}")
-            measured = card_joint_errors(card, spec.joint_names, p["card_test_set"])
+            measured = card_joint_errors(card, spec.joint_names, p["card_test_set"], list(spec.joint_symmetry))
         self.thresholds = joint_thresholds(
             spec.joint_names, joint_kinds(spec), measured, p["threshold_factor"], p["error_factor"],
             p["default_threshold_rad"], p["default_threshold_m"],
-            parse_overrides(parse_pairs(p["threshold_overrides"], "threshold_overrides")))
+            parse_overrides(parse_pairs(p["threshold_overrides"], "threshold_overrides")), spec.joint_symmetry)
         self.reported_topic = p["reported_topic"]
         self.monitor = JointStateMonitor(
             self.thresholds, robot_names, persistence=p["persistence"], window=p["window"],
@@ -126,6 +129,8 @@ class JointStateMonitorNode(Node):
 
     def _log_thresholds(self) -> None:
         rows = [f"{t.name} -> {name}: warn {t.warn:.3f} error {t.error:.3f} {t.unit} ({t.source})"
+                + (f", compared modulo {math.degrees(t.period):g} deg (it looks the same after that turn)"
+                   if t.symmetric else "")
                 for t, name in zip(self.thresholds, self.monitor.robot_names)]
         source = f"reported on {self._reported_sub.topic_name}" if self._reported_sub else "no reported joint states"
         self.get_logger().info(f"robot '{self.robot_id}': estimate on {self._estimate_sub.topic_name}, {source}; "
@@ -133,8 +138,9 @@ class JointStateMonitorNode(Node):
         blind = [t.name for t in self.thresholds if not t.can_warn]
         if blind:
             self.get_logger().warning(
-                f"{', '.join(blind)}: WARN threshold >= pi, no wrapped discrepancy can reach it: the model's error on "
-                "these joints is too large to tell a fault from it (set threshold_overrides to watch them anyway)")
+                f"{', '.join(blind)}: WARN threshold >= half the joint's period (pi; half a symmetric joint's), no "
+                "wrapped discrepancy can reach it: the model's error on these joints is too large to tell a fault "
+                "from it (set threshold_overrides to watch them anyway)")
 
     # -- callbacks ---------------------------------------------------------------------------------------------
     def _on_estimate(self, msg: JointState) -> None:

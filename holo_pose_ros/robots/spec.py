@@ -3,6 +3,7 @@ joints, root keypoint, neutral pose and URDF source. Loaded into plain dataclass
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +63,7 @@ class RobotSpec:
     constants: dict[str, float] = field(default_factory=dict)
     extra_fit_keypoints: tuple[FitKeypointSpec, ...] = ()
     close_ups: dict[str, str] = field(default_factory=dict)  # part name -> the URDF link whose subtree it is
+    joint_symmetry: dict[str, float] = field(default_factory=dict)  # joint -> the turn (radians) it looks alike after
     source_file: str | None = None
 
     @property
@@ -114,6 +116,27 @@ def _close_ups(entries, where: str) -> dict[str, str]:
     return {str(k): v for k, v in entries.items()}
 
 
+def _joint_symmetry(entries, joint_names: list[str], where: str) -> dict[str, float]:
+    """The YAML's `joint_symmetry_deg` ({joint: degrees}) in radians: joints whose distal links look the same after
+    that part of a turn (a hand's roll), so that no image tells q from q + the period. Each a joint of the YAML,
+    each period in (0, 360] degrees."""
+    if not isinstance(entries, dict):
+        raise ValueError(f"{where}: 'joint_symmetry_deg' must map joint names to a period in degrees")
+    out = {}
+    for name, value in entries.items():
+        if name not in joint_names:
+            raise ValueError(f"{where}: joint_symmetry_deg names '{name}', which is not one of the joints "
+                             f"({', '.join(joint_names)})")
+        try:
+            degrees = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: joint_symmetry_deg.{name}: '{value}' is not a number of degrees") from None
+        if not 0.0 < degrees <= 360.0:
+            raise ValueError(f"{where}: joint_symmetry_deg.{name}: {degrees:g} is not in (0, 360] degrees")
+        out[str(name)] = math.radians(degrees)
+    return out
+
+
 def load_robot_spec(robot: str | Path) -> RobotSpec:
     """Load a robot by shipped name ('panda', 'kuka', 'baxter') or by path to a robot YAML file."""
     path = Path(robot)
@@ -146,6 +169,7 @@ def load_robot_spec(robot: str | Path) -> RobotSpec:
         constants={str(k): float(v) for k, v in (data.get("constants") or {}).items()},
         extra_fit_keypoints=_fit_keypoints(data.get("fit_keypoints") or [], where),
         close_ups=_close_ups(data.get("close_ups") or {}, where),
+        joint_symmetry=_joint_symmetry(data.get("joint_symmetry_deg") or {}, [j.name for j in joints], where),
         source_file=where,
     )
     names = [k.name for k in spec.fit_keypoints]
