@@ -1,0 +1,120 @@
+#!/usr/bin/env python3
+"""What the joint-state monitor would say on a folder of generated frames, with the truth as the robot's report:
+its false alarms (the estimate's own error crossing the thresholds) and, with a fault injected into one joint's
+report at a time, how often it catches the fault. The thresholds as the node makes them (config/
+joint_state_monitor.yaml's defaults, the model's card, the robot YAML's joint_symmetry_deg); the frames streamed in
+file order at 10 Hz, each estimate matched with the report of its own stamp; frames where the robot is not found
+publish nothing, as in the node.
+
+Per joint: the WARN threshold and where it came from; the share of frames whose discrepancy is over WARN (false);
+the share of frames at which the joint's debounced level is WARN or above (false alarms); and with `--fault-deg`
+(revolute; `--fault-mm` prismatic) added to that joint's report, the share of frames at which it is (caught). Both
+shares count from the `persistence`-th frame, the first at which a level can rise.
+
+    python scripts/monitor_alarms.py --model panda --data data/panda_test_randomized_seed3031 [--frames 300] \\
+        [--fault-deg 45] [--fault-mm 20] [--backend onnxruntime]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from holo_pose_ros.data.dream import DreamReader
+from holo_pose_ros.estimator import Estimator
+from holo_pose_ros.model.cards import read_card
+from holo_pose_ros.monitoring import (WARN, JointStateMonitor, card_joint_errors, frame_level, joint_difference,
+                                      joint_kinds, joint_thresholds)
+from holo_pose_ros.resources import config_dir
+
+PERIOD_NS = 100_000_000  # 10 Hz
+
+
+def node_defaults() -> dict:
+    """The joint-state monitor node's parameter defaults (config/joint_state_monitor.yaml), read without ROS."""
+    sections = yaml.safe_load((config_dir() / "joint_state_monitor.yaml").read_text())
+    return next(iter(sections.values()))["ros__parameters"]
+
+
+def estimates(model: str, data: str, frames: int | None, backend: str) -> tuple[Estimator, np.ndarray, np.ndarray]:
+    """(estimator, (F, J) estimated joints, (F, J) true joints) over the frames where the robot was found."""
+    estimator = Estimator.from_model(model, backend=backend)
+    reader = DreamReader(data, estimator.robot)
+    est, true = [], []
+    for frame in tqdm(list(reader)[:frames], desc="estimate", unit="frame"):
+        estimate = estimator.estimate(reader.load_image(frame), frame.K)
+        if estimate.found:
+            est.append(estimate.joints)
+            true.append(frame.joints)
+    return estimator, np.array(est, float).reshape(-1, estimator.robot.n_joints), np.array(true, float).reshape(
+        -1, estimator.robot.n_joints)
+
+
+def stream(thresholds, est: np.ndarray, reported: np.ndarray, persistence: int) -> np.ndarray:
+    """(F, J) each joint's debounced level after each frame, the estimates and reports fed as the node feeds them."""
+    names = [t.name for t in thresholds]
+    monitor = JointStateMonitor(thresholds, persistence=persistence, now=0.0)
+    levels = np.zeros(est.shape, int)
+    for i, (e, r) in enumerate(zip(est, reported)):
+        now = i * PERIOD_NS / 1e9
+        monitor.add_reported(names, r, i * PERIOD_NS, now)
+        monitor.add_estimate(names, e, i * PERIOD_NS, now + 0.01)
+        levels[i] = [w.level for w in monitor.watches]
+    return levels
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default="panda", help="shipped model name or card path")
+    parser.add_argument("--data", required=True, help="a generated DREAM folder of the model's robot")
+    parser.add_argument("--frames", type=int, default=None, help="only the first N frames")
+    parser.add_argument("--fault-deg", type=float, default=45.0, help="fault added to a revolute joint's report")
+    parser.add_argument("--fault-mm", type=float, default=20.0, help="fault added to a prismatic joint's report")
+    parser.add_argument("--backend", default="onnxruntime", choices=("torch", "onnxruntime"))
+    args = parser.parse_args(argv)
+
+    p = node_defaults()
+    estimator, est, true = estimates(args.model, args.data, args.frames, args.backend)
+    spec = estimator.robot.spec
+    if len(est) <= p["persistence"]:
+        parser.error(f"only {len(est)} frames with the robot found: the monitor needs more than persistence "
+                     f"({p['persistence']})")
+    _, card = read_card(args.model)
+    kinds = joint_kinds(spec)
+    thresholds = joint_thresholds(spec.joint_names, kinds, card_joint_errors(card, spec.joint_names,
+                                                                            p["card_test_set"], list(spec.joint_symmetry)),
+                                  p["threshold_factor"], p["error_factor"], p["default_threshold_rad"],
+                                  p["default_threshold_m"], periods=spec.joint_symmetry)
+    persistence = int(p["persistence"])
+    settled = slice(persistence - 1, None)  # the frames from the first at which a level can have risen
+    healthy = stream(thresholds, est, true, persistence)[settled]
+    d = np.abs(np.array([joint_difference(e, t, kinds, [x.period for x in thresholds]) for e, t in zip(est, true)]))
+    over = np.array([[frame_level(v, x.warn, x.error) >= WARN for v, x in zip(row, thresholds)] for row in d])
+
+    print(f"{args.model} on {args.data}: {len(est)} frames with the robot found, the truth as the report; thresholds "
+          f"as the node makes them (factor {p['threshold_factor']:g}, persistence {persistence})")
+    print(f"| joint | WARN threshold | from | over WARN (frames) | false alarms (frames) | fault of "
+          f"{args.fault_deg:g} deg / {args.fault_mm:g} mm caught (frames) |")
+    print("|---|---:|---|---:|---:|---:|")
+    for j, t in enumerate(thresholds):
+        linear = t.kind == "prismatic"
+        fault = args.fault_mm / 1000.0 if linear else math.radians(args.fault_deg)
+        faulty = true.copy()
+        faulty[:, j] += fault
+        caught = stream(thresholds, est, faulty, persistence)[settled, j] >= WARN
+        warn = f"{t.warn * 1000:.1f} mm" if linear else f"{math.degrees(t.warn):.1f} deg"
+        where = t.source + (f", modulo {math.degrees(t.period):g} deg" if t.symmetric else "")
+        blind = "" if t.can_warn else " (can never warn)"
+        print(f"| {t.name} | {warn}{blind} | {where} | {over[:, j].mean() * 100:.1f} % | "
+              f"{(healthy[:, j] >= WARN).mean() * 100:.1f} % | {caught.mean() * 100:.1f} % |")
+    print(f"| any joint | | | {over.any(axis=1).mean() * 100:.1f} % | "
+          f"{(healthy >= WARN).any(axis=1).mean() * 100:.1f} % | |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
