@@ -322,6 +322,10 @@ def test_a_symmetric_joints_threshold_comes_from_its_error_modulo_the_symmetry()
                      "photo": {"joint_error_deg": {"panda_joint7": 60.0, "panda_joint1": 10.0}}}}
     measured = card_joint_errors(card, spec.joint_names, "unseen", list(spec.joint_symmetry))
     assert measured["panda_joint7"].value == pytest.approx(math.radians(20.0)) and measured["panda_joint7"].modulo_symmetry
+    # every set: the modulo measure of the sets that have it wins over a plain one, however large
+    assert card_joint_errors(card, spec.joint_names, "", list(spec.joint_symmetry))["panda_joint7"].value == \
+        pytest.approx(math.radians(20.0))
+    assert card_joint_errors(card, spec.joint_names)["panda_joint7"].value == pytest.approx(math.radians(70.0))
     # a card without the modulo measure (the photo set here): the plain error
     photo = card_joint_errors(card, spec.joint_names, "photo", list(spec.joint_symmetry))
     assert photo["panda_joint7"].value == pytest.approx(math.radians(60.0)) and not photo["panda_joint7"].modulo_symmetry

@@ -53,7 +53,7 @@ def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str =
     """The held-out mean error per joint from the card's `test: <set>: joint_error_deg:` (per joint, with `units`);
     for the joints named in `symmetric` (the robot YAML's joint_symmetry_deg) the error modulo the symmetry,
     `joint_error_modulo_symmetry_deg:`, where the card has it. `test_set` '' takes, per joint, the largest over the
-    card's test sets (an alarm then means more than the model's error on any of its held-out looks); otherwise that
+    card's test sets (for a symmetric joint, over those that measure it modulo the symmetry, where any does) (an alarm then means more than the model's error on any of its held-out looks); otherwise that
     set only (ValueError when the card has none of that name). Joints the card does not measure (or measures as
     NaN / null) are left out."""
     tests = card.get("test") or {}
@@ -77,7 +77,9 @@ def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str =
             if not isinstance(value, (int, float)) or not math.isfinite(value) or unit not in CARD_UNITS:
                 continue
             measured = MeasuredError(float(value) * CARD_UNITS[unit], str(set_name), is_modulo)
-            if name not in errors or measured.value > errors[name].value:
+            # the largest; an error modulo the symmetry before any plain one (a card rescored on some looks only)
+            if name not in errors or ((measured.modulo_symmetry, measured.value)
+                                      > (errors[name].modulo_symmetry, errors[name].value)):
                 errors[name] = measured
     return errors
 
