@@ -53,9 +53,10 @@ def card_joint_errors(card: Mapping, joint_names: Sequence[str], test_set: str =
     """The held-out mean error per joint from the card's `test: <set>: joint_error_deg:` (per joint, with `units`);
     for the joints named in `symmetric` (the robot YAML's joint_symmetry_deg) the error modulo the symmetry,
     `joint_error_modulo_symmetry_deg:`, where the card has it. `test_set` '' takes, per joint, the largest over the
-    card's test sets (for a symmetric joint, over those that measure it modulo the symmetry, where any does) (an alarm then means more than the model's error on any of its held-out looks); otherwise that
-    set only (ValueError when the card has none of that name). Joints the card does not measure (or measures as
-    NaN / null) are left out."""
+    card's test sets, so that an alarm means more than the model's error on any of its held-out looks (for a
+    symmetric joint, over the sets that measure it modulo the symmetry, where any does); otherwise that set only
+    (ValueError when the card has none of that name). Joints the card does not measure (or measures as NaN / null)
+    are left out."""
     tests = card.get("test") or {}
     if not isinstance(tests, Mapping):
         return {}
