@@ -199,6 +199,14 @@ def test_monitor_ok_then_the_faulty_joint_then_not_reporting_then_not_seen(graph
     status = monitor_statuses(diagnostics[seen:])[-1]
     assert status["level"] == DiagnosticStatus.OK[0] and "agrees" in status["message"], status
 
+    # the hand's roll reported half a turn away: it looks the same (the robot YAML's joint_symmetry_deg), so the
+    # discrepancy is 0 modulo half a turn and nothing is raised
+    assert by_name["panda_joint7"].period == pytest.approx(math.pi) and by_name["panda_joint7"].symmetric
+    robot.offset = {6: math.pi}
+    for k in range(50, 54):
+        np.testing.assert_allclose(lockstep(k).position, 0.0, atol=1e-9)
+        assert node.monitor.status(time.monotonic()).level == OK
+
     # from frame 100 the robot reports panda_joint4 1 rad away: nothing for 2 frames, ERROR at the 3rd, only it
     robot.offset = {3: 1.0}
     faults = []
