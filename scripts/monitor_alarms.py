@@ -12,7 +12,7 @@ the share of frames at which the joint's debounced level is WARN or above (false
 shares count from the `persistence`-th frame, the first at which a level can rise.
 
     python scripts/monitor_alarms.py --model panda --data data/panda_test_randomized_seed3031 [--frames 300] \\
-        [--fault-deg 45] [--fault-mm 20] [--backend onnxruntime]
+        [--fault-deg 45] [--fault-mm 20] [--card-test-set randomized] [--backend onnxruntime]
 """
 
 from __future__ import annotations
@@ -75,9 +75,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fault-deg", type=float, default=45.0, help="fault added to a revolute joint's report")
     parser.add_argument("--fault-mm", type=float, default=20.0, help="fault added to a prismatic joint's report")
     parser.add_argument("--backend", default="onnxruntime", choices=("torch", "onnxruntime"))
+    parser.add_argument("--card-test-set", default=None, help="the node's card_test_set (default: its default, '': "
+                                                              "per joint the largest error over the card's test sets)")
     args = parser.parse_args(argv)
 
     p = node_defaults()
+    if args.card_test_set is not None:
+        p["card_test_set"] = args.card_test_set
     estimator, est, true = estimates(args.model, args.data, args.frames, args.backend)
     spec = estimator.robot.spec
     if len(est) <= p["persistence"]:
@@ -96,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     over = np.array([[frame_level(v, x.warn, x.error) >= WARN for v, x in zip(row, thresholds)] for row in d])
 
     print(f"{args.model} on {args.data}: {len(est)} frames with the robot found, the truth as the report; thresholds "
-          f"as the node makes them (factor {p['threshold_factor']:g}, persistence {persistence})")
+          f"as the node makes them (factor {p['threshold_factor']:g}, persistence {persistence}, card_test_set "
+          f"'{p['card_test_set']}')")
     print(f"| joint | WARN threshold | from | over WARN (frames) | false alarms (frames) | fault of "
           f"{args.fault_deg:g} deg / {args.fault_mm:g} mm caught (frames) |")
     print("|---|---:|---|---:|---:|---:|")
