@@ -31,7 +31,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.data.generator import DISTRACTOR_LABEL, generate
-from holo_pose_ros.monitoring import joint_kinds, wrap_angle
+from holo_pose_ros.monitoring import joint_kinds, wrap_to_period
 from holo_pose_ros.nodes.monitor_launcher import ConfigError, load_monitor_config, main
 from holo_pose_ros.nodes.processes import parameter_value
 from holo_pose_ros.robots.kinematics import RobotModel
@@ -388,13 +388,16 @@ def test_two_robots_one_camera_each_pair_under_its_namespace_then_sigint(tmp_pat
             joint_names = readers[name].robot.joint_names
             estimates = {stamp_ns(m.header.stamp): m for m in received[f"{name}/estimate"]}
             assert all(list(m.name) == joint_names for m in estimates.values())
-            kinds = joint_kinds(readers[name].robot.spec)
+            spec = readers[name].robot.spec
+            kinds = joint_kinds(spec)
             for d in received[f"{name}/discrepancy"]:
                 stamp = stamp_ns(d.header.stamp)
                 assert list(d.name) == joint_names and stamp in estimates
                 expected = np.asarray(estimates[stamp].position) - truth[name, stamp]
                 angular = np.array([kind != "prismatic" for kind in kinds])
-                expected[angular] = wrap_angle(expected[angular])
+                # a turn, or half of one for a joint that looks the same after it (the robot YAML's symmetry)
+                period = np.array([spec.joint_symmetry.get(n, 2 * np.pi) for n in joint_names])
+                expected[angular] = wrap_to_period(expected[angular], period[angular])
                 np.testing.assert_allclose(d.position, expected, atol=1e-9)
         status = statuses()
         for name in ROBOTS:
