@@ -4,7 +4,8 @@ its false alarms (the estimate's own error crossing the thresholds) and, with a 
 report at a time, how often it catches the fault. The thresholds as the node makes them (config/
 joint_state_monitor.yaml's defaults, the model's card, the robot YAML's joint_symmetry_deg); the frames streamed in
 file order at 10 Hz, each estimate matched with the report of its own stamp; frames where the robot is not found
-publish nothing, as in the node.
+publish nothing, as in the node. (It reads the node's defaults through the node's own parameter table, so rclpy must
+be importable, as for the node.)
 
 Per joint: the WARN threshold and where it came from; the share of frames whose discrepancy is over WARN (false);
 the share of frames at which the joint's debounced level is WARN or above (false alarms); and with `--fault-deg`
@@ -21,23 +22,16 @@ import argparse
 import math
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from holo_pose_ros.data.dream import DreamReader
 from holo_pose_ros.estimator import Estimator
 from holo_pose_ros.model.cards import read_card
-from holo_pose_ros.monitoring import (WARN, JointStateMonitor, card_joint_errors, frame_level, joint_difference,
-                                      joint_kinds, joint_thresholds)
-from holo_pose_ros.resources import config_dir
+from holo_pose_ros.monitoring import WARN, JointStateMonitor, frame_level, node_thresholds
+from holo_pose_ros.nodes.joint_state_monitor_node import NODE_NAME, PARAMETERS
+from holo_pose_ros.nodes.parameters import load_defaults
 
 PERIOD_NS = 100_000_000  # 10 Hz
-
-
-def node_defaults() -> dict:
-    """The joint-state monitor node's parameter defaults (config/joint_state_monitor.yaml), read without ROS."""
-    sections = yaml.safe_load((config_dir() / "joint_state_monitor.yaml").read_text())
-    return next(iter(sections.values()))["ros__parameters"]
 
 
 def estimates(model: str, data: str, frames: int | None, backend: str) -> tuple[Estimator, np.ndarray, np.ndarray]:
@@ -54,17 +48,19 @@ def estimates(model: str, data: str, frames: int | None, backend: str) -> tuple[
         -1, estimator.robot.n_joints)
 
 
-def stream(thresholds, est: np.ndarray, reported: np.ndarray, persistence: int) -> np.ndarray:
-    """(F, J) each joint's debounced level after each frame, the estimates and reports fed as the node feeds them."""
+def stream(thresholds, est: np.ndarray, reported: np.ndarray, persistence: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F, J) each joint's debounced level after each frame and (F, J) its discrepancy (the monitor's, wrapped as it
+    wraps it), the estimates and reports fed as the node feeds them."""
     names = [t.name for t in thresholds]
     monitor = JointStateMonitor(thresholds, persistence=persistence, now=0.0)
-    levels = np.zeros(est.shape, int)
+    levels, discrepancies = np.zeros(est.shape, int), np.full(est.shape, np.nan)
     for i, (e, r) in enumerate(zip(est, reported)):
         now = i * PERIOD_NS / 1e9
         monitor.add_reported(names, r, i * PERIOD_NS, now)
-        monitor.add_estimate(names, e, i * PERIOD_NS, now + 0.01)
+        for d in monitor.add_estimate(names, e, i * PERIOD_NS, now + 0.01).discrepancies:
+            discrepancies[i] = d.values
         levels[i] = [w.level for w in monitor.watches]
-    return levels
+    return levels, discrepancies
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                                                               "per joint the largest error over the card's test sets)")
     args = parser.parse_args(argv)
 
-    p = node_defaults()
+    p = load_defaults("joint_state_monitor.yaml", NODE_NAME, PARAMETERS)
     if args.card_test_set is not None:
         p["card_test_set"] = args.card_test_set
     estimator, est, true = estimates(args.model, args.data, args.frames, args.backend)
@@ -87,16 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(est) <= p["persistence"]:
         parser.error(f"only {len(est)} frames with the robot found: the monitor needs more than persistence "
                      f"({p['persistence']})")
-    _, card = read_card(args.model)
-    kinds = joint_kinds(spec)
-    thresholds = joint_thresholds(spec.joint_names, kinds, card_joint_errors(card, spec.joint_names,
-                                                                            p["card_test_set"], list(spec.joint_symmetry)),
-                                  p["threshold_factor"], p["error_factor"], p["default_threshold_rad"],
-                                  p["default_threshold_m"], periods=spec.joint_symmetry)
+    thresholds = node_thresholds(spec, read_card(args.model)[1], p)
     persistence = int(p["persistence"])
     settled = slice(persistence - 1, None)  # the frames from the first at which a level can have risen
-    healthy = stream(thresholds, est, true, persistence)[settled]
-    d = np.abs(np.array([joint_difference(e, t, kinds, [x.period for x in thresholds]) for e, t in zip(est, true)]))
+    healthy, d = stream(thresholds, est, true, persistence)
+    healthy = healthy[settled]
     over = np.array([[frame_level(v, x.warn, x.error) >= WARN for v, x in zip(row, thresholds)] for row in d])
 
     print(f"{args.model} on {args.data}: {len(est)} frames with the robot found, the truth as the report; thresholds "
@@ -110,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         fault = args.fault_mm / 1000.0 if linear else math.radians(args.fault_deg)
         faulty = true.copy()
         faulty[:, j] += fault
-        caught = stream(thresholds, est, faulty, persistence)[settled, j] >= WARN
+        caught = stream(thresholds, est, faulty, persistence)[0][settled, j] >= WARN
         warn = f"{t.warn * 1000:.1f} mm" if linear else f"{math.degrees(t.warn):.1f} deg"
         where = t.source + (f", modulo {math.degrees(t.period):g} deg" if t.symmetric else "")
         blind = "" if t.can_warn else " (can never warn)"

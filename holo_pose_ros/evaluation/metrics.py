@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from holo_pose_ros.monitoring.joints import wrap_to_period
+
 _ANGULAR_TYPES = ("revolute", "continuous")
 
 
@@ -71,13 +73,13 @@ def joint_errors(pred_q: np.ndarray, gt_q: np.ndarray, joint_types: list[str]) -
 def joint_errors_modulo(pred_q: np.ndarray, gt_q: np.ndarray, joint_names: list[str],
                         periods_rad: dict[str, float]) -> dict[str, float]:
     """Mean |q_pred - q_gt| in degrees of each joint named in `periods_rad` (joint -> radians), the difference taken
-    modulo the joint's period (wrapped to [-period/2, period/2]): the error that remains when a joint's distal links
+    modulo the joint's period (wrapped to (-period/2, period/2], as the joint-state monitor wraps it): the error that remains when a joint's distal links
     look the same after that turn (a hand's roll), so that no image can tell the rest."""
     diff = (np.asarray(pred_q, float) - np.asarray(gt_q, float)).reshape(-1, len(joint_names))
     out = {}
     for name, period in periods_rad.items():
         d = diff[:, joint_names.index(name)]
-        out[name] = float(np.degrees(np.abs(d - period * np.round(d / period)).mean())) if len(d) else float("nan")
+        out[name] = float(np.degrees(np.abs(wrap_to_period(d, period)).mean())) if len(d) else float("nan")
     return out
 
 

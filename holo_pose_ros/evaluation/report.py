@@ -83,9 +83,7 @@ def _joint_section(results: list[FrameResult], joint_names: list[str], joint_typ
 def _joint_symmetry_section(results: list[FrameResult], joint_names: list[str], joint_types: list[str],
                             joint_symmetry: dict[str, float]) -> dict:
     """The joint_error_modulo_symmetry_deg dict: each symmetric joint's mean error (deg) modulo its period, and
-    `period_deg`; {} for a robot without symmetric joints. ValueError for a symmetric joint that is not angular."""
-    if not joint_symmetry:
-        return {}
+    `period_deg`. ValueError for a symmetric joint that is not angular."""
     for name in joint_symmetry:
         if metrics.joint_unit(joint_types[joint_names.index(name)]) != "deg":
             raise ValueError(f"joint symmetry: '{name}' is not a revolute or continuous joint")

@@ -9,7 +9,7 @@ from holo_pose_ros.monitoring.joints import (JointNameMap, Selection, joint_diff
 from holo_pose_ros.monitoring.monitor import Counters, Discrepancy, EstimateUpdate, JointStateMonitor, Status
 from holo_pose_ros.monitoring.stamps import Match, StampBuffer, StampMatcher
 from holo_pose_ros.monitoring.thresholds import (JointThreshold, MeasuredError, card_joint_errors, joint_kinds,
-                                                 joint_thresholds, parse_overrides)
+                                                 joint_thresholds, node_thresholds, parse_overrides)
 
 __all__ = [
     "ERROR", "LEVEL_NAMES", "OK", "WARN", "JointWatch", "frame_level",
@@ -17,5 +17,6 @@ __all__ = [
     "wrap_to_period",
     "Counters", "Discrepancy", "EstimateUpdate", "JointStateMonitor", "Status",
     "Match", "StampBuffer", "StampMatcher",
-    "JointThreshold", "MeasuredError", "card_joint_errors", "joint_kinds", "joint_thresholds", "parse_overrides",
+    "JointThreshold", "MeasuredError", "card_joint_errors", "joint_kinds", "joint_thresholds", "node_thresholds",
+    "parse_overrides",
 ]

@@ -12,7 +12,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from holo_pose_ros.monitoring.joints import ANGULAR_KINDS, LINEAR_KINDS
+from holo_pose_ros.monitoring.joints import ANGULAR_KINDS, LINEAR_KINDS, parse_pairs
 from holo_pose_ros.robots.description import urdf_text
 from holo_pose_ros.robots.spec import RobotSpec
 
@@ -152,6 +152,19 @@ def joint_thresholds(joint_names: Sequence[str], kinds: Sequence[str], measured:
             raise ValueError(f"{name}: threshold {warn} ({source}) must be finite and > 0")
         out.append(JointThreshold(name, kind, warn, error_factor * warn, source, periods.get(name, 2.0 * math.pi)))
     return out
+
+
+def node_thresholds(spec: RobotSpec, card: Mapping | None, params: Mapping) -> list[JointThreshold]:
+    """The thresholds as the joint-state monitor node makes them from its parameters (`params`: card_test_set,
+    threshold_factor, error_factor, default_threshold_rad, default_threshold_m and the threshold_overrides text) and
+    the loaded model's card (None: no card, defaults and overrides only); symmetric joints (the robot YAML's
+    joint_symmetry_deg) with the card's error modulo their period, compared modulo it."""
+    symmetric = list(spec.joint_symmetry)
+    measured = card_joint_errors(card, spec.joint_names, params["card_test_set"], symmetric) if card else {}
+    return joint_thresholds(spec.joint_names, joint_kinds(spec), measured, params["threshold_factor"],
+                            params["error_factor"], params["default_threshold_rad"], params["default_threshold_m"],
+                            parse_overrides(parse_pairs(params["threshold_overrides"], "threshold_overrides")),
+                            spec.joint_symmetry)
 
 
 def parse_overrides(pairs: Mapping[str, str]) -> dict[str, float]:

@@ -30,8 +30,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from holo_pose_ros.monitoring import (JointNameMap, JointStateMonitor, card_joint_errors, joint_kinds,
-                                      joint_thresholds, parse_overrides, parse_pairs)
+from holo_pose_ros.monitoring import JointNameMap, JointStateMonitor, node_thresholds
 from holo_pose_ros.model.cards import read_card
 from holo_pose_ros.nodes.parameters import ParameterSpecs, declare_parameters
 from holo_pose_ros.nodes.runner import run_node
@@ -96,16 +95,12 @@ class JointStateMonitorNode(Node):
         self.robot_id = p["robot_id"] or spec.name
         names_map = JointNameMap.parse(p["joint_name_map"], p["joint_name_prefix"])
         robot_names = names_map.robot_names(spec.joint_names)
-        measured, self.card_path = {}, None
+        card, self.card_path = None, None
         if p["model"]:
             self.card_path, card = read_card(p["model"])
             if card.get("robot") != spec.name:
                 raise ValueError(f"model '{p['model']}' is for robot '{card.get('robot')}', but robot:={p['robot']}")
-            measured = card_joint_errors(card, spec.joint_names, p["card_test_set"], list(spec.joint_symmetry))
-        self.thresholds = joint_thresholds(
-            spec.joint_names, joint_kinds(spec), measured, p["threshold_factor"], p["error_factor"],
-            p["default_threshold_rad"], p["default_threshold_m"],
-            parse_overrides(parse_pairs(p["threshold_overrides"], "threshold_overrides")), spec.joint_symmetry)
+        self.thresholds = node_thresholds(spec, card, p)
         self.reported_topic = p["reported_topic"]
         self.monitor = JointStateMonitor(
             self.thresholds, robot_names, persistence=p["persistence"], window=p["window"],
