@@ -104,8 +104,9 @@ class Estimator:
     crop's padding: guessed, not seen) have no confidence: neither the lifter nor the fit uses them. With `parts`
     (off unless asked or its card's `estimator.parts` says so) the fit searches by parts (fitting/parts.py: each
     chain swept two joints at a time, then the whole tree from the best) for the basins that the starts miss; on
-    tracked frames too unless `parts_tracked` is off (its card's `estimator.parts_tracked`): a tracked frame also
-    starts from the previous frame's fit, which came out of the search already. With `close_ups` (off unless asked
+    tracked frames too unless `parts_tracked` is off (its card's `estimator.parts_tracked`), there on every
+    `parts_tracked_every`-th frame (config/fitting.yaml): a tracked frame also starts from the previous frame's fit,
+    which carries the last search's basin. With `close_ups` (off unless asked
     or its card's `estimator.close_ups` says so; a network trained with `close_up` views) each of the robot YAML's
     `close_ups` (an arm, a hand) with enough confident keypoints in the crop pass gets a pass of its own, on a box
     around them at the part's own scale, whose detections of that part's fit keypoints replace the crop pass's.
@@ -166,6 +167,7 @@ class Estimator:
             meshes = load_link_meshes(fit_robot)
         self.fitter = Fitter(fit_robot, fit_config, meshes=meshes)
         self._previous: Estimate | None = None  # the last found estimate (its keypoints crop the next frame)
+        self._plain_since_search = 0  # tracked frames fitted plainly since the last search by parts
         self.static_camera = None
         self.set_static_camera(static_camera)
 
@@ -447,8 +449,10 @@ class Estimator:
             if self.silhouette and detection.mask is not None and detection.mask.any():
                 silhouette = self.fitter.silhouette(detection.mask)
             q0, T0 = np.concatenate(q0), np.concatenate(T0)
-            fitted = self.search(from_previous).fit(detection.uv, weights, K, q0, T0, known_joints,
-                                                    depth_prior_m if use_prior else None, silhouette=silhouette)
+            search = self.search(from_previous, self._plain_since_search)
+            self._plain_since_search = self._plain_since_search + 1 if from_previous and search is self.fitter else 0
+            fitted = search.fit(detection.uv, weights, K, q0, T0, known_joints, depth_prior_m if use_prior else None,
+                                silhouette=silhouette)
             timings["fit"] = (time.perf_counter() - t1) * 1e3
             if detection.image_size is not None and self.fitter.config["in_view_margin_px"] >= 0:
                 fitted, evidence["fitted"] = self._in_view_refit(detection, K, weights, fitted, q0, T0, known_joints,
@@ -515,10 +519,13 @@ class Estimator:
         timings["static_camera"] = (time.perf_counter() - t0) * 1e3
         return result
 
-    def search(self, from_previous: bool = False):
-        """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced); the
-        Fitter for a tracked frame that starts from the previous frame's fit unless `parts_tracked`."""
-        if not self.parts or (from_previous and not self.parts_tracked):
+    def search(self, from_previous: bool = False, plain_since_search: int | None = None):
+        """What fits: the Fitter, or with `parts` a PartsFitter around it (rebuilt when the Fitter is replaced). A
+        tracked frame (`from_previous`: it starts from the previous frame's fit) gets the Fitter unless
+        `parts_tracked`, and then also unless the frames fitted plainly since the last search
+        (`plain_since_search`; None: a search is due) reach the fit config's `parts_tracked_every` minus one."""
+        due = plain_since_search is None or plain_since_search + 1 >= int(self.fitter.config["parts_tracked_every"])
+        if not self.parts or (from_previous and not (self.parts_tracked and due)):
             return self.fitter
         if self._parts_fitter is None or self._parts_fitter.fitter is not self.fitter:
             from holo_pose_ros.fitting.parts import PartsFitter

@@ -1,7 +1,8 @@
 """Choose, for a shipped model that fits by parts, whether tracked frames search by parts too: track generated
 validation videos (never a test set) both ways and write the card's `estimator.parts_tracked` with its evidence
 (`tracking_validation`, `tracking_chosen_on`, `tracking_min_gain_auc`: the search must gain more than that, by
-default 1 AUC point, since it halves the tracking frame rate); the weights and every other card section stay as
+default 1 AUC point, since it costs tracking frame rate; with it a tracked frame searches every
+`parts_tracked_every`-th frame, config/fitting.yaml); the weights and every other card section stay as
 they are.
 scripts/ship_model.py makes the same choice with `--validation-video` when it ships a model.
 
@@ -29,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--video", action="append", required=True, help="generated validation video, repeatable")
     parser.add_argument("--min-gain", type=float, default=TRACKED_SEARCH_MIN_GAIN, metavar="AUC",
                         help="AUC points the search on tracked frames must gain to be chosen (default "
-                             f"{TRACKED_SEARCH_MIN_GAIN}: it halves the tracking frame rate)")
+                             f"{TRACKED_SEARCH_MIN_GAIN}: it costs tracking frame rate)")
     args = parser.parse_args(argv)
     card_path, card = read_card(args.name)
     estimator_card = card.get("estimator") or {}

@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
                              "the search by parts on tracked frames, it chooses estimator.parts_tracked")
     parser.add_argument("--tracked-search-min-gain", type=float, default=TRACKED_SEARCH_MIN_GAIN, metavar="AUC",
                         help="AUC points the search on tracked frames must gain on the videos to be chosen "
-                             f"(default {TRACKED_SEARCH_MIN_GAIN}: it halves the tracking frame rate)")
+                             f"(default {TRACKED_SEARCH_MIN_GAIN}: it costs tracking frame rate)")
     parser.add_argument("--depth-prior-weights", default="3,5,10,20,30", metavar="W,W,...",
                         help="the grid the validation folders choose the fit's depth prior weight from "
                              "(scripts/choose_depth_prior.py; '' keeps config/fitting.yaml's)")
@@ -172,7 +172,8 @@ def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: f
     """The card's `estimator.parts_tracked` and its evidence: each validation video tracked (fitted by parts on
     its untracked frames) with and without the search on tracked frames; the search stays on them only where it
     raises the mean AUC by more than `min_gain_auc`. A tracked frame also starts from the previous frame's fit, so
-    the search may add nothing there but time (about 20 ms a frame, half the tracking frame rate), and a 360-frame
+    the search may add nothing there but time (every `parts_tracked_every`-th tracked frame, config/fitting.yaml:
+about 5 ms a searched frame on Panda), and a 360-frame
     video's AUC moves by a point or more between settings that hardly differ. `fit_config`: the card's fit settings."""
     auc = {}
     for video in videos:

@@ -113,6 +113,27 @@ def test_tracked_frames_search_by_parts_only_where_the_card_chose_it():
     assert plain.search() is plain.fitter and plain.search(from_previous=True) is plain.fitter
 
 
+def test_tracked_frames_search_by_parts_every_nth_frame(frames):
+    """With `parts_tracked`, a tracked frame is searched by parts every `parts_tracked_every`-th frame (the fit
+    config) and fitted plainly between; an untracked frame always searches. The same image over and over is a
+    tracked stream of a robot standing still."""
+    from holo_pose_ros.fitting.parts import PartsFitter
+
+    estimator = Estimator.from_model("panda", min_confidence=0.0, fit=True, parts=True, parts_tracked=True,
+                                     tracking=True, fit_config={"parts_tracked_every": 3})
+    assert [isinstance(estimator.search(True, n), PartsFitter) for n in (None, 0, 1, 2, 5)] == [
+        True, False, False, True, True]
+    assert isinstance(estimator.search(False, 0), PartsFitter)
+    image, frame = frames[0]
+    plain_since_search = []
+    for _ in range(7):
+        assert estimator.estimate(image, frame.K).found
+        plain_since_search.append(estimator._plain_since_search)
+    assert plain_since_search == [0, 1, 2, 0, 1, 2, 0]
+    every_frame = Estimator.from_model("panda", parts=True, parts_tracked=True, fit_config={"parts_tracked_every": 1})
+    assert all(isinstance(every_frame.search(True, n), PartsFitter) for n in (0, 1, 7))
+
+
 def test_the_search_by_parts_never_ends_above_the_plain_fit(frames):
     """The same detections fitted plainly and searched by parts (fitting/parts.py): the search's reprojection cost
     is never higher."""
