@@ -105,6 +105,7 @@ def measured_errors(model: str, data: str, frames: int | None) -> None:
     mean modulo half a turn (degrees); frames where the robot was not found are left out."""
     from holo_pose_ros.data.dream import DreamReader
     from holo_pose_ros.estimator import Estimator
+    from holo_pose_ros.monitoring.joints import wrap_to_period
 
     estimator = Estimator.from_model(model, backend="onnxruntime", min_confidence=0.0)
     reader = DreamReader(data, estimator.robot)
@@ -120,7 +121,7 @@ def measured_errors(model: str, data: str, frames: int | None) -> None:
         if estimator.robot.joint_types[j] == "prismatic":
             continue
         e = np.abs(errors[:, j])
-        half = np.abs((errors[:, j] + 90.0) % 180.0 - 90.0)
+        half = np.degrees(np.abs(wrap_to_period(np.radians(errors[:, j]), np.pi)))
         print(f"| {name} | {e.mean():.1f} | {np.median(e):.1f} | {np.mean(e > 90) * 100:.0f} % | {half.mean():.1f} |")
 
 
