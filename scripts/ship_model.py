@@ -172,9 +172,9 @@ def tracked_search_choice(net, robot, lifter, videos: list[str], min_gain_auc: f
     """The card's `estimator.parts_tracked` and its evidence: each validation video tracked (fitted by parts on
     its untracked frames) with and without the search on tracked frames; the search stays on them only where it
     raises the mean AUC by more than `min_gain_auc`. A tracked frame also starts from the previous frame's fit, so
-    the search may add nothing there but time (every `parts_tracked_every`-th tracked frame, config/fitting.yaml:
-about 5 ms a searched frame on Panda), and a 360-frame
-    video's AUC moves by a point or more between settings that hardly differ. `fit_config`: the card's fit settings."""
+    the search may add nothing there but time (on every `parts_tracked_every`-th tracked frame, config/fitting.yaml:
+    about 5 ms a searched frame on Panda), and a 360-frame video's AUC moves by a point or more between settings that
+    hardly differ. `fit_config`: the card's fit settings."""
     auc = {}
     for video in videos:
         for tracked in (True, False):
